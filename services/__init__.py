@@ -1,0 +1,1 @@
+"""gridslam services: pure algorithm cores and thin Zenoh adapters."""

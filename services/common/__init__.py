@@ -1,0 +1,1 @@
+"""Shared runtime: config, flags, codec, session, service base, logging."""
