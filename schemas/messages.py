@@ -1,0 +1,174 @@
+"""One model per wire message (DESIGN.md, "Messages"). Each is frozen, forbids unknown
+fields and NaN/infinity, carries `schema_version` and a `Header` with `seq` and the source
+timestamp, and describes every field so that the exported JSON Schema documents the wire."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from schemas.base import Header, Image, Message, Model, PlanarIncrement, Pose, Twist
+
+
+class CameraInfo(Model):
+    """Pinhole intrinsics of a rectified camera (a subset of sensor_msgs/CameraInfo)."""
+
+    fx: float = Field(gt=0, description="Focal length along x, pixels.")
+    fy: float = Field(gt=0, description="Focal length along y, pixels.")
+    cx: float = Field(description="Principal point x, pixels.")
+    cy: float = Field(description="Principal point y, pixels.")
+    baseline: float = Field(0.0, ge=0, description="Stereo baseline in metres; 0 for a monocular camera.")
+
+
+class CameraFrame(Message):
+    """`camera/frame`: one mono or stereo frame from a source, with ground truth or odometry when known."""
+
+    header: Header = Field(description="Frame index, source timestamp, frame_id 'camera'.")
+    left: Image = Field(description="Left (or only) image.")
+    right: Image | None = Field(None, description="Right image of a rectified stereo pair, absent for monocular sources.")
+    camera_info: CameraInfo | None = Field(None, description="Intrinsics, when the source knows them.")
+    ground_truth: Pose | None = Field(
+        None, description="Ground-truth camera pose in the first camera's frame (x right, y down, z forward), when known."
+    )
+    odometry: PlanarIncrement | None = Field(None, description="Wheel or other odometry since the previous frame, when known.")
+
+
+class EgoMotion(Message):
+    """`egomotion`: the camera's motion since the previous frame, in the body frame."""
+
+    header: Header = Field(description="Index and timestamp of the frame that ends this increment.")
+    increment: PlanarIncrement = Field(description="Planar body-frame motion over the frame: forward, left (m), yaw (rad).")
+    transform: list[float] | None = Field(
+        None, min_length=16, max_length=16,
+        description="Full 6-DoF transform, previous camera to current camera, row-major 4×4, when the estimator knows it.",
+    )
+    quality: float = Field(ge=0.0, le=1.0, description="Figure of merit from 0 (no usable estimate) to 1.")
+    inliers: int = Field(0, ge=0, description="Feature inliers supporting the estimate (0 for scanline and passthrough).")
+    match_cost: float = Field(0.0, ge=0.0, description="Residual of the match (profile difference or reprojection error).")
+    scaled: bool = Field(True, description="False when the translation has no metric scale (monocular without a scale cue).")
+    estimator: str = Field(description="Estimator that produced it: scanline, stereo, mono or passthrough.")
+
+
+class GridPose(Message):
+    """`grid/pose`: the path integrator's pose (nav_msgs/Odometry layout plus the lattice readout)."""
+
+    header: Header = Field(description="Frame index and timestamp; frame_id 'odom'.")
+    child_frame_id: str = Field("base_link", description="Frame whose pose is given.")
+    pose: Pose = Field(description="Integrated pose in the odometry frame (planar: z = 0, yaw about z).")
+    twist: Twist = Field(default_factory=Twist, description="Velocity over the last frame, body frame.")
+    heading: float = Field(description="Heading from the head-direction integration, radians, counter-clockwise from x.")
+    lattice_shift: tuple[float, float] = Field(description="Flow of the activity lattice over the last frame, neurons (columns, rows).")
+    step_length: float = Field(ge=0.0, description="Distance credited to the last frame, metres (paper eq. 5).")
+    saturated: bool = Field(False, description="True when the lattice shift reached the decoder's search limit.")
+    integrator: str = Field(description="Integrator that produced it: grid (the attractor network) or deadreckoning.")
+
+
+class GridActivity(Message):
+    """`grid/activity`: a downsampled snapshot of the network's activity (the paper's Fig. 1)."""
+
+    header: Header = Field(description="Frame index and timestamp of the snapshot.")
+    image: Image = Field(description="Activity scaled to 0..255, mono8, downsampled from the n×n sheet.")
+    neurons: int = Field(ge=1, description="Side of the full network sheet, n.")
+    max_rate: float = Field(ge=0.0, description="Firing rate that maps to 255.")
+    lattice_shift: tuple[float, float] = Field(description="Lattice flow decoded for this frame, neurons (columns, rows).")
+
+
+class ViewTemplate(Message):
+    """`view/template`: which stored view template the current frame matched (RatSLAM local view cells)."""
+
+    header: Header = Field(description="Frame index and timestamp.")
+    template_id: int = Field(ge=0, description="Id of the matched or newly stored template.")
+    is_new: bool = Field(description="True when no stored template was close enough and this view was stored.")
+    distance: float = Field(ge=0.0, description="Match distance to the best stored template (normalised mean absolute difference).")
+    relative_angle: float = Field(description="Rotation between the view and the template from the best shift, radians.")
+    matched_frame: int = Field(ge=0, description="Frame at which the matched template was first stored.")
+    template_count: int = Field(ge=0, description="Templates stored so far.")
+
+
+class LoopClosure(Message):
+    """`loop/closure`: a loop closure confirmed by the paper's consistency rule."""
+
+    header: Header = Field(description="Current frame index and timestamp.")
+    frame: int = Field(ge=0, description="Current frame.")
+    matched_frame: int = Field(ge=0, description="Earlier frame of the place recognised.")
+    matched_template: int = Field(ge=0, description="Template id of the place recognised.")
+    votes: int = Field(ge=1, description="Consistent possible closures within the window that confirmed it.")
+
+
+class MapPose(Message):
+    """`map/pose`: the map-corrected robot pose (geometry_msgs/PoseStamped plus the experience)."""
+
+    header: Header = Field(description="Frame index and timestamp; frame_id 'map'.")
+    pose: Pose = Field(description="Corrected pose in the map frame.")
+    heading: float = Field(description="Corrected heading, radians, counter-clockwise from x.")
+    experience_id: int = Field(ge=0, description="Experience the robot is at.")
+
+
+class Experience(Model):
+    """A node of the experience map."""
+
+    id: int = Field(ge=0, description="Experience id, dense from 0.")
+    x: float = Field(description="Position x in the map frame, metres.")
+    y: float = Field(description="Position y in the map frame, metres.")
+    heading: float = Field(description="Heading, radians.")
+    template_id: int = Field(ge=0, description="View template seen when the experience was created.")
+    frame: int = Field(ge=0, description="Frame at which it was created.")
+
+
+class Link(Model):
+    """An edge of the experience map: the odometric transform from one experience to another."""
+
+    source: int = Field(ge=0, description="Experience the link starts at.")
+    target: int = Field(ge=0, description="Experience the link ends at.")
+    dx: float = Field(description="Forward offset of the target in the source's frame, metres.")
+    dy: float = Field(description="Leftward offset of the target in the source's frame, metres.")
+    dheading: float = Field(description="Heading of the target minus the source's, radians.")
+    frame: int = Field(ge=0, description="Frame at which the link was made.")
+    loop_closure: bool = Field(False, description="True for a link made by a confirmed loop closure.")
+
+
+class MapUpdate(Message):
+    """`map/update`: what changed in the experience map at this frame."""
+
+    header: Header = Field(description="Frame index and timestamp.")
+    experiences: list[Experience] = Field(description="Experiences created or moved by relaxation at this frame.")
+    links: list[Link] = Field(description="Links created at this frame.")
+    experience_count: int = Field(ge=0, description="Experiences in the map.")
+    link_count: int = Field(ge=0, description="Links in the map.")
+
+
+class MapSnapshot(Message):
+    """Reply of the `map/snapshot` queryable: the whole experience map."""
+
+    header: Header = Field(description="Last frame applied to the map and its timestamp.")
+    experiences: list[Experience] = Field(description="Every experience.")
+    links: list[Link] = Field(description="Every link.")
+
+
+class ServiceStatus(Message):
+    """`status/<service>/<instance>`: counters of a running service, published periodically and on query."""
+
+    header: Header = Field(description="Last frame handled (seq 0 before any) and the wall-clock time.")
+    service: str = Field(description="Service name, e.g. gridcells.")
+    instance: str = Field(description="Instance name, unique per process.")
+    state: Literal["starting", "running", "stopping"] = Field(description="Life-cycle state.")
+    received: int = Field(ge=0, description="Messages received and decoded.")
+    published: int = Field(ge=0, description="Messages published.")
+    decode_errors: int = Field(ge=0, description="Messages dropped because they failed to decode or validate.")
+    gaps: int = Field(ge=0, description="Frames missing between consecutive received seq numbers.")
+    stale: int = Field(ge=0, description="Messages dropped because their seq was not newer than the last one (duplicates, out of order).")
+    uptime: float = Field(ge=0.0, description="Seconds since the service started.")
+
+    @field_validator("service", "instance")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        if not value or any(c in value for c in "/*$?# "):
+            raise ValueError(f"{value!r} is not a valid key chunk")
+        return value
+
+
+MESSAGES: tuple[type[Message], ...] = (
+    CameraFrame, EgoMotion, GridPose, GridActivity, ViewTemplate, LoopClosure,
+    MapPose, MapUpdate, MapSnapshot, ServiceStatus,
+)

@@ -1,0 +1,114 @@
+"""The Zenoh side of every process: the shared flag set, the runtime config it fills, and the
+session built from it (STYLE.md: zenoh-python examples' common flags, built once)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+from typing import Literal
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.common.config import load_config
+from services.common.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+
+
+class RuntimeConfig(BaseModel):
+    """How a process joins the Zenoh network (table `[runtime]`, env `GRIDSLAM_RUNTIME_*`)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    mode: Literal["client", "peer", "router"] = Field("client", description="Zenoh session mode.")
+    connect: list[str] = Field(
+        default_factory=lambda: [DEFAULT_ROUTER], description="Endpoints to connect to, e.g. tcp/127.0.0.1:7447."
+    )
+    listen: list[str] = Field(default_factory=list, description="Endpoints to listen on.")
+    multicast_scouting: bool = Field(False, description="Discover peers by UDP multicast (off: loopback and containers).")
+    robot: str = Field("robot0", pattern=r"^[A-Za-z0-9_\-]+$", description="Robot name, the <robot> chunk of every key.")
+    zenoh_config: Path | None = Field(None, description="A Zenoh JSON5 config file applied first (TLS, access control).")
+    cfg: dict[str, str] = Field(default_factory=dict, description="Raw Zenoh settings KEY: JSON5 VALUE, applied last.")
+
+
+def add_runtime_flags(parser: argparse.ArgumentParser) -> None:
+    """The flag set every gridslam process shares."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--mode", choices=["client", "peer", "router"], help="session mode (default client)")
+    group.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help=f"endpoint to connect to (default {DEFAULT_ROUTER})")
+    group.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on")
+    group.add_argument("-c", "--config", type=Path, metavar="FILE", help="gridslam TOML config file ([runtime] and per-service tables)")
+    group.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 config file (TLS, access control)")
+    group.add_argument(
+        "--multicast-scouting", action=argparse.BooleanOptionalAction, default=None,
+        help="UDP multicast scouting (default off)",
+    )
+    group.add_argument("--cfg", action="append", metavar="KEY:VALUE", help="raw Zenoh setting, VALUE in JSON5, e.g. transport/link/tx/lease:3000")
+    group.add_argument("--robot", help="robot name in every key (default robot0)")
+
+
+def parse_cfg(items: list[str] | None) -> dict[str, str] | None:
+    if not items:
+        return None
+    pairs = {}
+    for item in items:
+        name, sep, value = item.partition(":")
+        if not sep or not name:
+            raise ConfigError(f"--cfg {item!r}: expected KEY:VALUE")
+        pairs[name] = value
+    return pairs
+
+
+def runtime_from_args(args: argparse.Namespace, **defaults) -> RuntimeConfig:
+    """RuntimeConfig from the config file, environment and flags; `defaults` replace the
+    model's defaults (e.g. a router listens on the default endpoint instead of connecting)."""
+    flags = {
+        "mode": args.mode, "connect": args.connect, "listen": args.listen, "robot": args.robot,
+        "multicast_scouting": args.multicast_scouting, "zenoh_config": args.zenoh_config, "cfg": parse_cfg(args.cfg),
+    }
+    return load_config(RuntimeConfig, "runtime", defaults=defaults, config_file=args.config, overrides=flags)
+
+
+def zenoh_config(runtime: RuntimeConfig) -> zenoh.Config:
+    """A zenoh.Config for this runtime; bad values become a one-line ConfigError."""
+    try:
+        if runtime.zenoh_config is not None:
+            if not runtime.zenoh_config.is_file():
+                raise ConfigError(f"{runtime.zenoh_config}: Zenoh config file not found")
+            config = zenoh.Config.from_file(str(runtime.zenoh_config))
+        else:
+            config = zenoh.Config()
+        config.insert_json5("mode", json.dumps(runtime.mode))
+        config.insert_json5("connect/endpoints", json.dumps(runtime.connect))
+        if runtime.listen:
+            config.insert_json5("listen/endpoints", json.dumps(runtime.listen))
+        config.insert_json5("scouting/multicast/enabled", json.dumps(runtime.multicast_scouting))
+        if runtime.mode == "client":
+            # Retry the router forever at a short period so that a restarted router is
+            # rejoined within a second (issue 7); the default backs off to several seconds.
+            config.insert_json5("connect/timeout_ms", "-1")
+            config.insert_json5("connect/exit_on_failure", "false")
+            config.insert_json5("connect/retry", '{"period_init_ms": 200, "period_max_ms": 500, "period_increase_factor": 1.5}')
+        for name, value in runtime.cfg.items():
+            config.insert_json5(name, value)
+    except ConfigError:
+        raise
+    except Exception as error:  # zenoh raises ZError or ValueError with its own text
+        raise ConfigError(f"invalid Zenoh configuration: {error}") from None
+    return config
+
+
+def open_session(runtime: RuntimeConfig) -> zenoh.Session:
+    """Open the process's one Zenoh session (DESIGN.md, "Runtime")."""
+    config = zenoh_config(runtime)
+    try:
+        session = zenoh.open(config)
+    except Exception as error:
+        raise ConfigError(f"cannot open a Zenoh session ({runtime.mode}, connect {runtime.connect}, listen {runtime.listen}): {error}") from None
+    log.info("zenoh session %s open (%s)", session.info.zid(), runtime.mode)
+    return session

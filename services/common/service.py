@@ -1,0 +1,274 @@
+"""The base of every service adapter (DESIGN.md, "Runtime").
+
+A service opens one Zenoh session, declares its liveliness token
+`gridslam/@v1/<robot>/health/<service>/<instance>`, and handles every incoming sample on its
+own main thread, in arrival order: Zenoh callbacks only hand raw bytes to a bounded inbox
+(so a slow service pushes back on its publishers instead of growing a queue), and the main
+thread decodes, checks `seq`, and calls the handler. A sample that fails to decode is logged
+with its key, counted and dropped. SIGTERM/SIGINT stop the loop; the session is closed in
+`finally` (a session left open with callback subscribers hangs interpreter exit).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import zenoh
+
+from schemas import Header, ServiceStatus, Time
+from schemas.base import Message
+from services.common import codec, topics
+from services.common.runtime import RuntimeConfig, open_session
+
+log = logging.getLogger(__name__)
+
+INBOX_SIZE = 16          # samples waiting for the main thread; beyond this, publishers are pushed back
+STATUS_PERIOD_S = 1.0    # how often the status message is published
+LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors
+
+
+@dataclass
+class Counters:
+    """What a service has seen; published as ServiceStatus and shown by `gridslam health`."""
+
+    received: int = 0
+    published: int = 0
+    decode_errors: int = 0
+    gaps: int = 0
+    stale: int = 0
+    dropped_newest_only: int = 0
+
+
+@dataclass
+class SeqTracker:
+    """Detects gaps and stale (duplicate or out-of-order) `seq` numbers on one subscription."""
+
+    last: int | None = None
+
+    def check(self, seq: int) -> tuple[int, bool]:
+        """(frames missing before `seq`, whether `seq` is stale)."""
+        if self.last is not None and seq <= self.last:
+            return 0, True
+        missing = 0 if self.last is None else seq - self.last - 1
+        self.last = seq
+        return missing, False
+
+
+@dataclass
+class Subscription:
+    topic: str
+    model: type[Message]
+    handler: Callable[[Message], None]
+    newest_only: bool
+    drop_stale: bool
+    seq: SeqTracker = field(default_factory=SeqTracker)
+    pending: tuple[str, bytes, str] | None = None   # newest_only: the one sample kept
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class Service:
+    """Subclass, set `name`, declare subscriptions in `setup()`, publish with `publish()`."""
+
+    name: ClassVar[str] = "service"
+    idle_timeout: float = 0.1   # seconds the main loop waits for a sample before calling on_idle()
+
+    def __init__(self, runtime: RuntimeConfig, instance: str | None = None):
+        self.runtime = runtime
+        self.robot = runtime.robot
+        self.instance = instance or f"{socket.gethostname()}-{os.getpid()}".replace(".", "-")
+        self.counters = Counters()
+        self.session: zenoh.Session | None = None
+        self.state = "starting"
+        self.last_seq = 0
+        self.started = time.monotonic()
+        self._stop = threading.Event()
+        self._inbox: queue.Queue[tuple[int, tuple[str, bytes, str] | None]] = queue.Queue(maxsize=INBOX_SIZE)
+        self._subscriptions: list[Subscription] = []
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._entities: list = []
+        self._last_status = 0.0
+
+    # ----------------------------------------------------------------- for subclasses
+    def setup(self) -> None:
+        """Declare subscriptions and queryables; the session is open."""
+
+    def on_idle(self) -> None:
+        """Called when no sample arrived within `idle_timeout` (producers do their work here)."""
+
+    def teardown(self) -> None:
+        """Flush state before the session closes."""
+
+    def subscribe(self, topic: str, handler: Callable[[Message], None], *, newest_only: bool = False,
+                  drop_stale: bool = True) -> None:
+        """Call `handler(message)` on the main thread for every valid message on `topic`.
+
+        `newest_only` keeps just the latest unhandled sample (a live camera: old frames are
+        dropped by design and counted); otherwise every sample is handled, in order, and a full
+        inbox blocks Zenoh's delivery, which pushes back on BLOCK publishers."""
+        assert self.session is not None, "subscribe() belongs in setup()"
+        subscription = Subscription(topic, topics.TOPICS[topic], handler, newest_only, drop_stale)
+        index = len(self._subscriptions)
+        self._subscriptions.append(subscription)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            item = (str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding))
+            if not subscription.newest_only:
+                self._put((index, item))
+                return
+            with subscription.lock:
+                replaced, subscription.pending = subscription.pending, item
+            if replaced is None:
+                self._put((index, None))   # the main thread takes whatever is newest then
+            else:
+                self.counters.dropped_newest_only += 1
+
+        self._entities.append(self.session.declare_subscriber(topics.key(self.robot, topic), on_sample))
+
+    def queryable(self, topic: str, answer: Callable[[], Message]) -> None:
+        """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only)."""
+        assert self.session is not None, "queryable() belongs in setup()"
+        self._entities.append(self.session.declare_queryable(
+            topics.key(self.robot, topic), lambda query: self._reply(query, answer)))
+
+    def publish(self, topic: str, message: Message) -> None:
+        """Publish a pipeline message on `topic` (congestion control BLOCK: offline replay loses nothing)."""
+        self._send(topic, message)
+        self.counters.published += 1
+
+    def _send(self, topic: str, message: Message) -> None:
+        publisher = self._publishers.get(topic)
+        if publisher is None:
+            publisher = self._publishers[topic] = self.session.declare_publisher(
+                topics.key(self.robot, topic), encoding=zenoh.Encoding(codec.encoding_of(message)),
+                congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE,
+            )
+        publisher.put(codec.encode(message))
+
+    def header(self, seq: int, stamp: Time | float, frame_id: str = "") -> Header:
+        stamp = stamp if isinstance(stamp, Time) else Time.from_seconds(stamp)
+        return Header(seq=seq, stamp=stamp, frame_id=frame_id, robot=self.robot)
+
+    def stop(self) -> None:
+        """Ask the main loop to end (thread- and signal-safe)."""
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    # ----------------------------------------------------------------- the loop
+    def run(self) -> int:
+        """Open the session, serve until stopped, close everything. Returns the exit code."""
+        previous = self._install_signal_handlers()
+        try:
+            self.session = open_session(self.runtime)
+            self.setup()
+            self._entities.append(self.session.liveliness().declare_token(
+                topics.health_key(self.robot, self.name, self.instance)))
+            self.queryable(f"status/{self.name}/{self.instance}", self.status)
+            self.state = "running"
+            log.info("%s/%s running on robot %s", self.name, self.instance, self.robot)
+            while not self._stop.is_set():
+                self._serve_once()
+                self._publish_status_if_due()
+            self.state = "stopping"
+            self.teardown()
+            return 0
+        finally:
+            self._close()
+            self._restore_signal_handlers(previous)
+
+    def status(self) -> ServiceStatus:
+        c = self.counters
+        return ServiceStatus(
+            header=self.header(self.last_seq, time.time()), service=self.name, instance=self.instance,
+            state=self.state, received=c.received, published=c.published, decode_errors=c.decode_errors,
+            gaps=c.gaps, stale=c.stale, uptime=time.monotonic() - self.started,
+        )
+
+    def _serve_once(self) -> None:
+        try:
+            index, item = self._inbox.get(timeout=self.idle_timeout) if self.idle_timeout > 0 else self._inbox.get_nowait()
+        except queue.Empty:
+            self.on_idle()
+            return
+        subscription = self._subscriptions[index]
+        if item is None:   # newest_only: take the latest sample
+            with subscription.lock:
+                item, subscription.pending = subscription.pending, None
+        self._handle(subscription, *item)
+
+    def _handle(self, subscription: Subscription, key: str, payload: bytes, encoding: str) -> None:
+        try:
+            message = codec.decode(payload, subscription.model, encoding)
+        except codec.CodecError as error:
+            self.counters.decode_errors += 1
+            if self.counters.decode_errors <= 10 or self.counters.decode_errors % LOG_EVERY == 0:
+                log.warning("%s: dropped message on %s (%d so far): %s", self.name, key, self.counters.decode_errors, error)
+            return
+        self.counters.received += 1
+        seq = message.header.seq
+        missing, stale = subscription.seq.check(seq)
+        if stale and subscription.drop_stale:
+            self.counters.stale += 1
+            log.debug("%s: dropped stale seq %d on %s", self.name, seq, key)
+            return
+        if missing:
+            self.counters.gaps += missing
+            log.warning("%s: %d frame(s) missing before seq %d on %s", self.name, missing, seq, key)
+        self.last_seq = max(self.last_seq, seq)
+        subscription.handler(message)
+
+    def _put(self, entry: tuple[int, tuple[str, bytes, str] | None]) -> None:
+        # Blocks Zenoh's delivery thread while the inbox is full: that is the back pressure.
+        while not self._stop.is_set():
+            try:
+                self._inbox.put(entry, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    def _reply(self, query: zenoh.Query, answer: Callable[[], Message]) -> None:
+        try:
+            message = answer()
+            query.reply(query.key_expr, codec.encode(message), encoding=zenoh.Encoding(codec.encoding_of(message)))
+        except Exception:  # a failing answer must not kill Zenoh's thread; the querier times out
+            log.exception("%s: query on %s failed", self.name, query.key_expr)
+
+    def _publish_status_if_due(self) -> None:
+        now = time.monotonic()
+        if now - self._last_status >= STATUS_PERIOD_S:
+            self._last_status = now
+            self._send(f"status/{self.name}/{self.instance}", self.status())
+
+    def _close(self) -> None:
+        for entity in reversed(self._entities):
+            try:
+                entity.undeclare()
+            except Exception as error:  # already gone with the session; nothing to keep
+                log.debug("undeclare failed: %s", error)
+        self._entities.clear()
+        self._publishers.clear()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def _install_signal_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        handler = lambda signum, frame: self.stop()  # noqa: E731
+        return {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+    @staticmethod
+    def _restore_signal_handlers(previous) -> None:
+        for sig, handler in (previous or {}).items():
+            signal.signal(sig, handler)

@@ -1,0 +1,59 @@
+"""Key expressions (DESIGN.md, "Key expressions"): `gridslam/@v1/<robot>/<topic>`."""
+
+from __future__ import annotations
+
+from schemas import (
+    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate, ServiceStatus,
+    ViewTemplate,
+)
+from schemas.base import Message
+
+PREFIX = "gridslam/@v1"
+
+# Every pipeline topic and the message it carries.
+TOPICS: dict[str, type[Message]] = {
+    "camera/frame": CameraFrame,
+    "egomotion": EgoMotion,
+    "grid/pose": GridPose,
+    "grid/activity": GridActivity,
+    "view/template": ViewTemplate,
+    "loop/closure": LoopClosure,
+    "map/pose": MapPose,
+    "map/update": MapUpdate,
+    "map/snapshot": MapSnapshot,
+    "status": ServiceStatus,
+}
+
+
+def key(robot: str, topic: str) -> str:
+    """Key expression of `topic` for `robot`, e.g. key('robot0', 'grid/pose')."""
+    return f"{PREFIX}/{robot}/{topic}"
+
+
+def health_key(robot: str, service: str, instance: str) -> str:
+    """Liveliness token of one running service instance."""
+    return f"{PREFIX}/{robot}/health/{service}/{instance}"
+
+
+def status_key(robot: str, service: str, instance: str) -> str:
+    """Status topic and queryable of one running service instance."""
+    return f"{PREFIX}/{robot}/status/{service}/{instance}"
+
+
+def parse_health_key(key_expr: str) -> tuple[str, str, str]:
+    """(robot, service, instance) of a liveliness token's key."""
+    parts = key_expr.split("/")
+    if len(parts) != 6 or "/".join(parts[:2]) != PREFIX or parts[3] != "health":
+        raise ValueError(f"{key_expr!r} is not a gridslam health key")
+    return parts[2], parts[4], parts[5]
+
+
+def topic_of(key_expr: str) -> str | None:
+    """The topic of a gridslam key (status keys give 'status'), or None for a foreign key."""
+    parts = key_expr.split("/")
+    if len(parts) < 4 or "/".join(parts[:2]) != PREFIX:
+        return None
+    topic = "/".join(parts[3:])
+    if topic.startswith("status/"):
+        return "status"
+    return topic if topic in TOPICS else None
