@@ -59,7 +59,8 @@ def load_preset(preset: str | Path) -> tuple[Camera | None, dict[str, Any]]:
             table = tomllib.load(stream)
     except (OSError, tomllib.TOMLDecodeError) as error:
         raise ConfigError(f"{path}: not a readable TOML preset: {error}") from None
-    world_fields = {field.name: field.type for field in dataclasses.fields(WorldConfig)}
+    # The seed comes from the spec (synthetic:SEED), never from a preset.
+    world_fields = {field.name: field.type for field in dataclasses.fields(WorldConfig) if field.name != "seed"}
     calibration = {key: value for key, value in table.items() if key in CALIBRATION_KEYS}
     settings: dict[str, Any] = {}
     for key, value in table.items():
