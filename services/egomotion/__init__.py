@@ -1,0 +1,128 @@
+"""Ego-motion estimators: one increment (forward, left, yaw, 6-DoF transform when known,
+quality) per camera frame. Pure cores (numpy and OpenCV only).
+
+    make_estimator(name, camera, params)   # "scanline", "stereo", "mono", "passthrough"
+    load_estimator_config(preset, config_file) -> (default estimator name, {name: params})
+
+Presets (services/egomotion/presets/<name>.toml) hold an optional top-level ``estimator``
+(the default estimator for that dataset) and one table of parameters per estimator,
+``[scanline]``, ``[stereo]``, ``[mono]``, ``[passthrough]``; a --config file has the same
+shape and overrides the preset key by key. docs/egomotion.md describes every parameter.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from services.egomotion.base import (
+    EgomotionError,
+    Estimator,
+    EstimatorConfigError,
+    Increment,
+    increment_from_transform,
+    params_from_dict,
+    transform_from_increment,
+)
+from services.egomotion.mono import MonoEstimator, MonoParams
+from services.egomotion.passthrough import PassthroughEstimator, PassthroughParams
+from services.egomotion.scanline import ScanlineEstimator, ScanlineParams
+from services.egomotion.stereo import StereoEstimator, StereoParams
+
+ESTIMATORS: dict[str, tuple[type, type]] = {
+    "scanline": (ScanlineEstimator, ScanlineParams),
+    "stereo": (StereoEstimator, StereoParams),
+    "mono": (MonoEstimator, MonoParams),
+    "passthrough": (PassthroughEstimator, PassthroughParams),
+}
+PRESET_DIR = Path(__file__).resolve().parent / "presets"
+
+
+def make_estimator(name: str, camera: Any = None, params: dict[str, Any] | None = None) -> Estimator:
+    """The estimator called ``name`` with ``params`` (a dict of its parameter fields; missing
+    ones take their defaults). ``camera`` (source Camera: fx, fy, cx, cy, baseline) is needed
+    by stereo (with a baseline) and mono; frames that carry their own camera override it.
+    Raises EstimatorConfigError for an unknown name or parameter or a missing calibration."""
+    if name not in ESTIMATORS:
+        raise EstimatorConfigError(f"unknown estimator {name!r} (available: {', '.join(ESTIMATORS)})")
+    estimator_class, params_class = ESTIMATORS[name]
+    parameters = params_from_dict(params_class, params, where=f"{name} parameters")
+    if name == "stereo" and (camera is None or getattr(camera, "baseline", 0.0) <= 0):
+        raise EstimatorConfigError(
+            "the stereo estimator needs a stereo calibration (a camera with a baseline > 0): "
+            "use a stereo source with its calibration, --preset or --calibration"
+        )
+    if name == "mono" and camera is None:
+        raise EstimatorConfigError(
+            "the mono estimator needs camera intrinsics (fx, fy, cx, cy): use --preset or --calibration"
+        )
+    return estimator_class(parameters, camera)
+
+
+def preset_names() -> list[str]:
+    return sorted(path.stem for path in PRESET_DIR.glob("*.toml"))
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A preset or config TOML file, shape-checked: optional ``estimator`` string and one
+    table per estimator name."""
+    path = Path(path)
+    try:
+        with path.open("rb") as stream:
+            table = tomllib.load(stream)
+    except FileNotFoundError:
+        raise EstimatorConfigError(f"{path}: config file not found") from None
+    except (OSError, tomllib.TOMLDecodeError) as error:
+        raise EstimatorConfigError(f"{path}: not a readable TOML file: {error}") from None
+    for key, value in table.items():
+        if key == "estimator":
+            if value not in ESTIMATORS:
+                raise EstimatorConfigError(f"{path}: estimator {value!r} is not one of {', '.join(ESTIMATORS)}")
+        elif key in ESTIMATORS:
+            if not isinstance(value, dict):
+                raise EstimatorConfigError(f"{path}: [{key}] must be a table of parameters")
+            params_from_dict(ESTIMATORS[key][1], value, where=f"{path}: [{key}]")
+        else:
+            raise EstimatorConfigError(
+                f"{path}: unknown key {key!r} (expected 'estimator' or a table [{'], ['.join(ESTIMATORS)}])"
+            )
+    return table
+
+
+def load_estimator_config(
+    preset: str | None = None, config_file: str | Path | None = None
+) -> tuple[str | None, dict[str, dict[str, Any]]]:
+    """The default estimator name (or None) and the parameters of every estimator, from a
+    preset name and/or a config file (the file overrides the preset key by key)."""
+    default: str | None = None
+    params: dict[str, dict[str, Any]] = {name: {} for name in ESTIMATORS}
+    sources: list[Path] = []
+    if preset is not None:
+        path = PRESET_DIR / f"{preset}.toml"
+        if not path.is_file():
+            raise EstimatorConfigError(f"unknown estimator preset {preset!r} (available: {', '.join(preset_names())})")
+        sources.append(path)
+    if config_file is not None:
+        sources.append(Path(config_file))
+    for path in sources:
+        table = read_config_file(path)
+        default = table.get("estimator", default)
+        for name in ESTIMATORS:
+            params[name].update(table.get(name, {}))
+    return default, params
+
+
+__all__ = [
+    "ESTIMATORS",
+    "EgomotionError",
+    "Estimator",
+    "EstimatorConfigError",
+    "Increment",
+    "increment_from_transform",
+    "load_estimator_config",
+    "make_estimator",
+    "preset_names",
+    "read_config_file",
+    "transform_from_increment",
+]

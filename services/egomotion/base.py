@@ -1,0 +1,189 @@
+"""What every ego-motion estimator shares: the per-frame `Increment`, the `Estimator` protocol,
+the conversions between a camera-frame transform and a planar body-frame increment, and the
+parameter handling (plain dataclasses built from dicts, unknown keys rejected by name).
+
+Conventions (DESIGN.md, docs/egomotion.md):
+- Camera frame: x right, y down, z forward (KITTI, LIBVISO2, OpenCV).
+- Body frame of an increment: x forward, y left, yaw counter-clockwise seen from above (z up).
+- `Increment.transform` maps a point's coordinates in the previous camera frame to its
+  coordinates in the current camera frame, p_cur = T p_prev. This is LIBVISO2's `Tr`
+  (as in ../shared/data/nubot_scene1/libviso2_egomotion.csv) and what cv2.solvePnP and
+  cv2.recoverPose return. The camera's own motion (its pose in the previous frame) is inv(T).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Protocol, TypeVar, runtime_checkable
+
+import cv2
+import numpy as np
+
+from services.common.errors import ConfigError, GridslamError
+
+
+class EgomotionError(GridslamError):
+    """An estimator cannot run on the input it was given (e.g. stereo without a right image)."""
+
+
+class EstimatorConfigError(ConfigError):
+    """Unknown estimator, unknown or invalid parameter, missing calibration."""
+
+
+@dataclass(frozen=True)
+class Increment:
+    """Ego-motion between the previous frame and this one, in the body frame of the previous frame.
+
+    forward, left in metres per frame (or unit-free when ``scaled`` is False); yaw in radians per
+    frame, counter-clockwise positive. ``transform`` is the full 6-DoF 4×4 camera transform when
+    the estimator knows it (see the module docstring for its direction). ``quality`` is a 0..1
+    figure of merit (0: nothing could be estimated, the motion fields are a fallback);
+    ``inliers`` counts the measurements that support the estimate (feature inliers, overlapping
+    profile columns); ``match_cost`` is the residual of the fit in the estimator's own unit
+    (pixels of reprojection error, mean absolute profile difference).
+    """
+
+    forward: float
+    left: float
+    yaw: float
+    transform: np.ndarray | None
+    quality: float
+    inliers: int
+    match_cost: float
+    scaled: bool = True
+
+
+def zero_increment(*, inliers: int = 0, match_cost: float = 0.0, scaled: bool = True) -> Increment:
+    """No motion, quality 0: the first frame, or a frame nothing could be estimated from."""
+    return Increment(0.0, 0.0, 0.0, np.eye(4), 0.0, int(inliers), float(match_cost), scaled)
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """One ego-motion estimator: frames in, one increment per frame out.
+
+    The first frame yields a zero increment. A poor frame (blank, blurred, too few features)
+    never raises: it yields a low-quality increment. Only a configuration problem (e.g. a
+    stereo estimator given monocular frames) raises EgomotionError.
+    """
+
+    name: str
+
+    def estimate(self, frame: Any) -> Increment: ...
+
+
+# ---------------------------------------------------------------------------------------------
+# Conversions
+
+
+def increment_from_transform(transform: np.ndarray) -> tuple[float, float, float]:
+    """(forward, left, yaw) of the camera motion described by ``transform`` (p_cur = T p_prev).
+
+    The camera's pose in the previous frame is M = inv(T); forward is its z translation, left
+    its −x translation, yaw the heading of its optical axis about the up axis (−y):
+    atan2(−M13, M33), which is the data README's asin(−Tt13) for level motion.
+    """
+    motion = invert_transform(transform)
+    forward = float(motion[2, 3])
+    left = float(-motion[0, 3])
+    yaw = math.atan2(-motion[0, 2], motion[2, 2])
+    return forward, left, yaw
+
+
+def transform_from_increment(forward: float, left: float, yaw: float) -> np.ndarray:
+    """The camera transform (p_cur = T p_prev) of a level planar motion; inverse of
+    `increment_from_transform` for motions without pitch, roll or height change."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    motion = np.eye(4)
+    # Counter-clockwise yaw turns the optical axis (z) toward −x (left): a rotation about −y.
+    motion[:3, :3] = [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]
+    motion[:3, 3] = [-left, 0.0, forward]
+    return invert_transform(motion)
+
+
+def invert_transform(transform: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4×4 transform (rotation transposed), exact and cheap."""
+    inverse = np.eye(4)
+    rotation = transform[:3, :3]
+    inverse[:3, :3] = rotation.T
+    inverse[:3, 3] = -rotation.T @ transform[:3, 3]
+    return inverse
+
+
+def transform_from_rt(rvec_or_matrix: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """A 4×4 from an OpenCV rotation (Rodrigues vector or 3×3 matrix) and translation."""
+    rotation = np.asarray(rvec_or_matrix, dtype=float)
+    if rotation.shape != (3, 3):
+        rotation = cv2.Rodrigues(rotation.reshape(3, 1))[0]
+    transform = np.eye(4)
+    transform[:3, :3] = rotation
+    transform[:3, 3] = np.asarray(tvec, dtype=float).reshape(3)
+    return transform
+
+
+def increment_with_transform(
+    transform: np.ndarray, *, quality: float, inliers: int, match_cost: float, scaled: bool = True
+) -> Increment:
+    forward, left, yaw = increment_from_transform(transform)
+    return Increment(forward, left, yaw, transform, float(quality), int(inliers), float(match_cost), scaled)
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    """An 8-bit single-channel view of a frame image (BGR converted with OpenCV's luma)."""
+    if image.ndim == 3:
+        if image.shape[2] == 1:
+            image = image[:, :, 0]
+        else:
+            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.dtype != np.uint8:
+        image = np.clip(image, 0, 255).astype(np.uint8)
+    return image
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameters: plain frozen dataclasses (no pydantic in cores), built from TOML/CLI dicts.
+
+P = TypeVar("P")
+
+
+def params_from_dict(cls: type[P], values: dict[str, Any] | None, *, where: str) -> P:
+    """Build the parameter dataclass ``cls`` from ``values``; an unknown key or a value of the
+    wrong type raises EstimatorConfigError naming ``where`` and the key. Types are checked
+    against the field annotations (bool, int, float, str, optional float, fixed-length tuple)."""
+    values = dict(values or {})
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise EstimatorConfigError(
+            f"{where}: unknown parameter(s) {', '.join(unknown)}; known: {', '.join(sorted(fields))}"
+        )
+    converted = {key: _coerce(value, str(fields[key].type), where=f"{where}: {key}") for key, value in values.items()}
+    try:
+        return cls(**converted)
+    except (TypeError, ValueError) as error:
+        raise EstimatorConfigError(f"{where}: {error}") from None
+
+
+def _coerce(value: Any, annotation: str, *, where: str) -> Any:
+    optional = "None" in annotation
+    if value is None and optional:
+        return None
+    kind = annotation.replace("| None", "").replace("None |", "").strip()
+    is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind == "bool" and not isinstance(value, bool):
+        raise EstimatorConfigError(f"{where} must be true or false, got {value!r}")
+    if kind == "int" and not (is_number and float(value).is_integer()):
+        raise EstimatorConfigError(f"{where} must be an integer, got {value!r}")
+    if kind == "float" and not is_number:
+        raise EstimatorConfigError(f"{where} must be a number, got {value!r}")
+    if kind == "str" and not isinstance(value, str):
+        raise EstimatorConfigError(f"{where} must be a string, got {value!r}")
+    if kind.startswith("tuple"):
+        if not isinstance(value, (list, tuple)) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+        ):
+            raise EstimatorConfigError(f"{where} must be a list of numbers, got {value!r}")
+        return tuple(value)
+    return int(value) if kind == "int" else float(value) if kind == "float" else value

@@ -1,0 +1,135 @@
+"""Feature detection with bucketing and pyramidal Lucas–Kanade tracking, shared by the stereo
+and mono estimators.
+
+Bucketing follows LIBVISO2 (Geiger, Ziegler & Stiller, "StereoScan: Dense 3d reconstruction
+in real-time", IV 2011, Sec. III-A): the image is divided into square buckets and only the
+strongest few features of each are kept, so that features spread over the image and the
+pose is not dominated by one textured corner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FeatureParams:
+    fast_threshold: int = 20
+    bucket_size_px: int = 50
+    features_per_bucket: int = 4
+    border_px: int = 12  # no features where the tracking window would leave the image
+
+
+def detect_bucketed(image: np.ndarray, params: FeatureParams, mask: np.ndarray | None = None) -> np.ndarray:
+    """FAST corners, strongest ``features_per_bucket`` per bucket, as an (N, 2) float32 array.
+
+    If the image yields few corners at the configured threshold, the threshold is lowered once
+    (to a quarter) so that low-contrast images still give something to track.
+    """
+    points, responses = _fast(image, params.fast_threshold, params.border_px, mask)
+    buckets_total = (image.shape[0] // params.bucket_size_px + 1) * (image.shape[1] // params.bucket_size_px + 1)
+    if len(points) < buckets_total and params.fast_threshold > 4:
+        points, responses = _fast(image, max(2, params.fast_threshold // 4), params.border_px, mask)
+    if len(points) == 0:
+        return np.empty((0, 2), np.float32)
+    columns = image.shape[1] // params.bucket_size_px + 1
+    bucket = (points[:, 1] // params.bucket_size_px).astype(np.int64) * columns + (
+        points[:, 0] // params.bucket_size_px
+    ).astype(np.int64)
+    order = np.lexsort((-responses, bucket))  # by bucket, strongest first within a bucket
+    bucket_sorted = bucket[order]
+    first_of_bucket = np.searchsorted(bucket_sorted, bucket_sorted, side="left")
+    rank = np.arange(len(order)) - first_of_bucket
+    keep = order[rank < params.features_per_bucket]
+    return points[keep].astype(np.float32)
+
+
+def _fast(image: np.ndarray, threshold: int, border: int, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    detector = cv2.FastFeatureDetector_create(threshold=int(threshold), nonmaxSuppression=True)
+    keypoints = detector.detect(image, mask)
+    if not keypoints:
+        return np.empty((0, 2)), np.empty(0)
+    points = np.array([k.pt for k in keypoints], dtype=np.float64)
+    responses = np.array([k.response for k in keypoints], dtype=np.float64)
+    height, width = image.shape[:2]
+    inside = (
+        (points[:, 0] >= border)
+        & (points[:, 0] < width - border)
+        & (points[:, 1] >= border)
+        & (points[:, 1] < height - border)
+    )
+    return points[inside], responses[inside]
+
+
+@dataclass(frozen=True)
+class TrackParams:
+    window_px: int = 21
+    pyramid_levels: int = 3
+    forward_backward_px: float = 1.0  # a track is kept only if tracking it back lands this close
+
+
+def track(
+    previous: np.ndarray,
+    current: np.ndarray,
+    points: np.ndarray,
+    params: TrackParams,
+    guess: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Track ``points`` (N, 2) from ``previous`` into ``current`` with pyramidal Lucas–Kanade
+    and a forward–backward check (Kalal et al., "Forward-backward error", ICPR 2010).
+
+    ``guess`` (N, 2) is an initial position in ``current`` (e.g. predicted from the last
+    motion). Returns the tracked positions (N, 2) and a boolean mask of good tracks.
+    """
+    if len(points) == 0:
+        return np.empty((0, 2), np.float32), np.zeros(0, bool)
+    points = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
+    window = (params.window_px, params.window_px)
+    flags = 0
+    start = None
+    if guess is not None:
+        start = np.ascontiguousarray(guess, dtype=np.float32).reshape(-1, 1, 2).copy()
+        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(
+        previous, current, points, start, winSize=window, maxLevel=params.pyramid_levels, criteria=criteria, flags=flags
+    )
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(
+        current,
+        previous,
+        tracked,
+        points.copy(),
+        winSize=window,
+        maxLevel=params.pyramid_levels,
+        criteria=criteria,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    tracked = tracked.reshape(-1, 2)
+    fb_error = np.linalg.norm(back.reshape(-1, 2) - points.reshape(-1, 2), axis=1)
+    height, width = current.shape[:2]
+    good = (
+        (status.ravel() == 1)
+        & (status_back.ravel() == 1)
+        & (fb_error < params.forward_backward_px)
+        & (tracked[:, 0] >= 0)
+        & (tracked[:, 0] <= width - 1)
+        & (tracked[:, 1] >= 0)
+        & (tracked[:, 1] <= height - 1)
+    )
+    return tracked, good
+
+
+def global_shift(previous: np.ndarray, current: np.ndarray, downscale: int = 4) -> tuple[float, float]:
+    """The dominant image translation from ``previous`` to ``current`` in pixels, by phase
+    correlation (Kuglin & Hines 1975) of downscaled, Hann-windowed images. A cheap seed for
+    tracking through a sudden turn, where the whole image slides by hundreds of pixels."""
+    small = [
+        cv2.resize(image, None, fx=1.0 / downscale, fy=1.0 / downscale, interpolation=cv2.INTER_AREA).astype(np.float32)
+        for image in (previous, current)
+    ]
+    window = cv2.createHanningWindow(small[0].shape[::-1], cv2.CV_32F)
+    (dx, dy), _ = cv2.phaseCorrelate(small[0], small[1], window)
+    return dx * downscale, dy * downscale

@@ -1,0 +1,87 @@
+"""Ego-motion taken from the frame itself: its odometry (wheel encoders, a motion-only CSV) or
+the increment between consecutive ground-truth poses, with optional Gaussian noise.
+
+For motion-only data, and for controlled experiments: exact inputs to the grid-cell network,
+or inputs with known, seeded noise of given standard deviations per frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from services.egomotion.base import (
+    EgomotionError,
+    Increment,
+    increment_with_transform,
+    invert_transform,
+    transform_from_increment,
+    zero_increment,
+)
+
+SOURCES = ("auto", "odometry", "ground_truth")
+
+
+@dataclass(frozen=True)
+class PassthroughParams:
+    # Where increments come from: auto (odometry when the frame has it, else ground truth),
+    # odometry, or ground_truth.
+    source: str = "auto"
+    # Standard deviations of zero-mean Gaussian noise added per frame (m, m, rad).
+    noise_forward: float = 0.0
+    noise_left: float = 0.0
+    noise_yaw: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise ValueError(f"source must be one of {', '.join(SOURCES)}")
+        if min(self.noise_forward, self.noise_left, self.noise_yaw) < 0:
+            raise ValueError("noise standard deviations must be >= 0")
+
+
+class PassthroughEstimator:
+    """Increments from the frame's odometry or ground truth, plus seeded noise."""
+
+    name = "passthrough"
+
+    def __init__(self, params: PassthroughParams, camera: Any = None) -> None:
+        self.params = params
+        self._rng = np.random.default_rng(params.seed)
+        self._previous_pose: np.ndarray | None = None
+        self._first = True
+
+    def estimate(self, frame: Any) -> Increment:
+        exact = self._exact(frame)
+        first, self._first = self._first, False
+        if first:
+            return zero_increment()
+        if not self._noisy():
+            return exact
+        noise = self._rng.normal(0.0, [self.params.noise_forward, self.params.noise_left, self.params.noise_yaw])
+        forward, left, yaw = exact.forward + noise[0], exact.left + noise[1], exact.yaw + noise[2]
+        return Increment(forward, left, yaw, transform_from_increment(forward, left, yaw), 1.0, 1, 0.0)
+
+    def _noisy(self) -> bool:
+        p = self.params
+        return p.noise_forward > 0 or p.noise_left > 0 or p.noise_yaw > 0
+
+    def _exact(self, frame: Any) -> Increment:
+        odometry = getattr(frame, "odometry", None)
+        pose = getattr(frame, "ground_truth", None)
+        use_odometry = self.params.source == "odometry" or (self.params.source == "auto" and odometry is not None)
+        if use_odometry:
+            if odometry is None:
+                raise EgomotionError(f"passthrough estimator: frame {frame.seq} has no odometry (source = odometry)")
+            forward, left, yaw = (float(v) for v in odometry)
+            return Increment(forward, left, yaw, transform_from_increment(forward, left, yaw), 1.0, 1, 0.0)
+        if pose is None:
+            raise EgomotionError(f"passthrough estimator: frame {frame.seq} has neither odometry nor ground truth")
+        pose = np.asarray(pose, dtype=float)
+        previous, self._previous_pose = self._previous_pose, pose
+        if previous is None:
+            return zero_increment()
+        # p_cur = inv(pose_cur) · pose_prev · p_prev: the camera transform between the frames.
+        return increment_with_transform(invert_transform(pose) @ previous, quality=1.0, inliers=1, match_cost=0.0)

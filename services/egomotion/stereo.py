@@ -1,0 +1,229 @@
+"""Feature-based stereo visual odometry in the spirit of LIBVISO2 (Geiger, Ziegler & Stiller,
+"StereoScan: Dense 3d reconstruction in real-time", IEEE IV 2011), built from OpenCV parts.
+
+Per frame:
+1. FAST corners in the left image, bucketed so they spread over the image (StereoScan III-A).
+2. Each corner matched into the right image by pyramidal Lucas–Kanade with a forward–backward
+   check; on rectified images a match must lie on the same row (|Δv| ≤ max_row_error_px) with a
+   positive disparity d (StereoScan's epipolar constraint).
+3. Triangulated: Z = f·b/d, X = (u − cu)·Z/f, Y = (v − cv)·Z/f.
+4. Next frame: those points are tracked from the previous left image into the new one (LK
+   seeded with the position the last motion predicts), and the camera transform comes from
+   PnP with RANSAC on the 3D–2D matches, refined by Levenberg–Marquardt on the inliers
+   (StereoScan III-B minimises the same reprojection error with Gauss–Newton inside RANSAC).
+
+A frame with too few tracks or inliers (blank, blurred, covered lens) gives a zero-quality
+increment (zero motion, or the last motion if failure_motion = "hold") and never raises.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.egomotion.base import (
+    EgomotionError,
+    Increment,
+    grey,
+    increment_with_transform,
+    invert_transform,
+    transform_from_rt,
+    zero_increment,
+)
+from services.egomotion.features import FeatureParams, TrackParams, detect_bucketed, global_shift, track
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class StereoParams:
+    fast_threshold: int = 20
+    bucket_size_px: int = 50
+    features_per_bucket: int = 4
+    klt_window_px: int = 21
+    # Stereo matching needs a deeper pyramid than frame-to-frame tracking: disparities of close
+    # objects reach ~100 px (NuBot: f·b = 59 px·m, so 0.6 m away is 99 px).
+    stereo_pyramid_levels: int = 4
+    track_pyramid_levels: int = 3
+    forward_backward_px: float = 1.0
+    max_row_error_px: float = 1.0
+    min_disparity_px: float = 0.5
+    ransac_reprojection_px: float = 2.0  # LIBVISO2's inlier threshold
+    ransac_iterations: int = 200  # LIBVISO2's RANSAC iterations
+    min_inliers: int = 12
+    # Below this quality the tracking is retried seeded by the global image shift.
+    retry_below_quality: float = 0.3
+    # Inlier count at which quality saturates; quality = inlier ratio × min(1, inliers / this).
+    quality_inliers: int = 80
+    # Seed frame-to-frame tracking with the previous motion (constant-velocity prediction).
+    predict: bool = True
+    # What a failed frame reports: "zero" motion or "hold" the last motion (both with quality 0).
+    failure_motion: str = "zero"
+
+    def __post_init__(self) -> None:
+        if self.failure_motion not in ("zero", "hold"):
+            raise ValueError("failure_motion must be 'zero' or 'hold'")
+        if self.min_inliers < 4:
+            raise ValueError("min_inliers must be at least 4 (PnP needs 4 points)")
+
+    def features(self) -> FeatureParams:
+        return FeatureParams(self.fast_threshold, self.bucket_size_px, self.features_per_bucket)
+
+
+@dataclass
+class _StereoKeyframe:
+    """The last frame whose features could be triangulated: its left image, its features and
+    their 3D points (its camera frame), and the transform from its camera to the camera of
+    the most recent frame (identity unless later frames failed to triangulate)."""
+
+    left: np.ndarray
+    points: np.ndarray  # (N, 2) float32 pixel positions in the left image
+    landmarks: np.ndarray  # (N, 3) metres, camera frame
+    disparity_median: float = 0.0
+    to_last: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+class StereoEstimator:
+    """LIBVISO2-like stereo odometry; state is the previous frame's triangulated features."""
+
+    name = "stereo"
+
+    def __init__(self, params: StereoParams, camera: Any) -> None:
+        self.params = params
+        self.camera = camera
+        self._keyframe: _StereoKeyframe | None = None
+        self._last = zero_increment()
+        self._stereo_track = TrackParams(params.klt_window_px, params.stereo_pyramid_levels, params.forward_backward_px)
+        self._frame_track = TrackParams(params.klt_window_px, params.track_pyramid_levels, params.forward_backward_px)
+
+    def estimate(self, frame: Any) -> Increment:
+        camera = getattr(frame, "camera", None) or self.camera
+        if frame.right is None:
+            raise EgomotionError(f"stereo estimator: frame {frame.seq} has no right image (the source is monocular)")
+        if camera is None or camera.baseline <= 0:
+            raise EgomotionError("stereo estimator: the camera has no stereo baseline (give a calibration)")
+        left, right = grey(frame.left), grey(frame.right)
+        if left.shape != right.shape:
+            raise EgomotionError(f"stereo estimator: frame {frame.seq} left {left.shape} and right {right.shape} differ in size")
+        K = camera.matrix()
+
+        increment = zero_increment()
+        to_current = None
+        keyframe = self._keyframe
+        if keyframe is not None and keyframe.left.shape == left.shape:
+            increment = self._motion(keyframe, left, K)
+            if increment.quality > 0.0:
+                # Motion since the keyframe; the frame's own increment removes what the
+                # frames between keyframe and now already reported.
+                to_current = increment.transform
+                increment = increment_with_transform(
+                    to_current @ invert_transform(keyframe.to_last),
+                    quality=increment.quality,
+                    inliers=increment.inliers,
+                    match_cost=increment.match_cost,
+                )
+            elif self.params.failure_motion == "hold":
+                last = self._last
+                increment = Increment(last.forward, last.left, last.yaw, last.transform, 0.0, increment.inliers, increment.match_cost)
+        if increment.quality > 0.0:
+            self._last = increment
+        fresh = self._triangulate(left, right, camera)
+        if len(fresh.points) >= self.params.min_inliers or to_current is None or keyframe is None:
+            self._keyframe = fresh
+        else:
+            # This frame's stereo failed (e.g. NuBot frame 152: the left image repeats frame 151
+            # while the right one is new) but its pose is known: keep tracking the older keyframe.
+            keyframe.to_last = to_current
+        return increment
+
+    # -- stereo matching and triangulation (steps 1–3)
+
+    def _triangulate(self, left: np.ndarray, right: np.ndarray, camera: Any) -> _StereoKeyframe:
+        points = detect_bucketed(left, self.params.features())
+        if len(points) == 0:
+            return _StereoKeyframe(left, points, np.empty((0, 3)))
+        # Seed the right-image search at the median disparity of the last frame.
+        guess = points.copy()
+        if self._keyframe is not None:
+            guess[:, 0] -= self._keyframe.disparity_median
+        matched, good = track(left, right, points, self._stereo_track, guess)
+        disparity = points[:, 0] - matched[:, 0]
+        good &= (np.abs(points[:, 1] - matched[:, 1]) <= self.params.max_row_error_px) & (
+            disparity >= self.params.min_disparity_px
+        )
+        points, disparity = points[good], disparity[good].astype(np.float64)
+        depth = camera.fx * camera.baseline / disparity
+        landmarks = np.column_stack(
+            (
+                (points[:, 0] - camera.cx) * depth / camera.fx,
+                (points[:, 1] - camera.cy) * depth / camera.fy,
+                depth,
+            )
+        )
+        median = float(np.median(disparity)) if len(disparity) else 0.0
+        return _StereoKeyframe(left, points, landmarks, median)
+
+    # -- temporal tracking and pose (step 4)
+
+    def _motion(self, keyframe: _StereoKeyframe, left: np.ndarray, K: np.ndarray) -> Increment:
+        """Track the keyframe's features into ``left`` and solve the pose. The first try seeds
+        tracking with the last motion; if that fails, a second try seeds it with the global
+        image shift found by phase correlation, which catches sudden turns the pyramid cannot
+        reach (NuBot frame 153: a 23° turn after a dropped frame slides the image ~194 px)."""
+        p = self.params
+        if len(keyframe.points) < p.min_inliers:
+            return zero_increment(inliers=len(keyframe.points))
+        guess = None
+        if p.predict and self._last.transform is not None:
+            guess = _project(keyframe.landmarks, self._last.transform @ keyframe.to_last, K)
+        result = self._pose(keyframe, left, K, guess)
+        if result.quality < p.retry_below_quality:
+            dx, dy = global_shift(keyframe.left, left)
+            retry = self._pose(keyframe, left, K, keyframe.points + np.float32([dx, dy]))
+            if retry.quality > result.quality:
+                return retry
+        return result
+
+    def _pose(
+        self, keyframe: _StereoKeyframe, left: np.ndarray, K: np.ndarray, guess: np.ndarray | None
+    ) -> Increment:
+        p = self.params
+        tracked, good = track(keyframe.left, left, keyframe.points, self._frame_track, guess)
+        if good.sum() < p.min_inliers:
+            return zero_increment(inliers=int(good.sum()))
+        objects = keyframe.landmarks[good]
+        images = tracked[good].astype(np.float64)
+        try:
+            found, rvec, tvec, inliers = cv2.solvePnPRansac(
+                objects,
+                images,
+                K,
+                None,
+                iterationsCount=p.ransac_iterations,
+                reprojectionError=p.ransac_reprojection_px,
+                confidence=0.999,
+                flags=cv2.SOLVEPNP_EPNP,
+            )
+        except cv2.error as error:
+            logger.debug("stereo: PnP failed: %s", error)
+            return zero_increment()
+        if not found or inliers is None or len(inliers) < p.min_inliers:
+            return zero_increment(inliers=0 if inliers is None else len(inliers))
+        inliers = inliers.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(objects[inliers], images[inliers], K, None, rvec, tvec)
+        projected, _ = cv2.projectPoints(objects[inliers], rvec, tvec, K, None)
+        residual = projected.reshape(-1, 2) - images[inliers]
+        rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
+        quality = len(inliers) / len(objects) * min(1.0, len(inliers) / p.quality_inliers)
+        transform = transform_from_rt(rvec, tvec)
+        return increment_with_transform(transform, quality=quality, inliers=len(inliers), match_cost=rms)
+
+
+def _project(points: np.ndarray, transform: np.ndarray, K: np.ndarray) -> np.ndarray:
+    moved = points @ transform[:3, :3].T + transform[:3, 3]
+    z = np.maximum(moved[:, 2:3], 1e-6)
+    return (moved[:, :2] / z) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
