@@ -66,7 +66,7 @@ class WorldConfig:
     speed: float = 0.1  # metres per frame along the centre line
     frames_per_lap: int = 0  # 0: route length / speed; otherwise it sets the speed
     fps: float = 10.0  # frame rate for timestamps
-    wander: float = 0.1  # amplitude of the sideways sway, metres (phase differs per lap)
+    wander: float = 0.05  # amplitude of the sideways sway, metres (phase differs per lap)
     pillar_spacing: float = 4.0  # mean distance between pillars along the walls (0: none)
     noise: float = 2.0  # standard deviation of the sensor noise, grey levels
     exposure_jitter: float = 0.02  # standard deviation of the per-frame exposure gain
@@ -339,9 +339,9 @@ class SyntheticWorld(IndexedSource):
         w(u) = A sin(2π u / λ), u the distance driven, so laps differ slightly. Heading is the tangent of the offset curve: d/ds (c + w n) =
         (1 − w κ) t + w' n for a centre line c with tangent t, left normal n, curvature κ."""
         amplitude = self.config.wander
-        # About 7.5 m per sway, with a third of a sway left over per lap: each lap's path is
+        # About 15 m per sway, with a third of a sway left over per lap: each lap's path is
         # shifted by a third of a period (up to √3·A sideways from the previous lap's).
-        wavelength = self.route.length / (max(1, round(self.route.length / 7.5)) + 1 / 3)
+        wavelength = self.route.length / (max(1, round(self.route.length / 15.0)) + 1 / 3)
         poses = np.empty((count, 3))
         for i in range(count):
             u = i * self.speed
