@@ -147,3 +147,45 @@ def test_preset_and_frames_per_lap():
     world = SyntheticWorld(dataclasses.replace(SMALL, frames_per_lap=50, laps=3), mono=True, stop=2)
     assert len(SyntheticWorld(dataclasses.replace(SMALL, frames_per_lap=50, laps=3), mono=True)) == 150
     assert world.speed == pytest.approx(world.route.length / 50)
+
+
+def test_feature_stereo_odometry_recovers_the_motion(world):
+    """The world is textured enough for LIBVISO2-style stereo VO: corners matched left to
+    right give 3-D points, tracked into the next frame, PnP-RANSAC gives the motion."""
+    K, baseline = world.camera.matrix(), world.camera.baseline
+    for seq in (3, 16):  # a straight and a turning frame (9.4° per frame) of the small loop
+        now, after = world[seq], world[seq + 1]
+        corners = cv2.goodFeaturesToTrack(now.left, 400, 0.01, 7)
+        in_right, found, _ = cv2.calcOpticalFlowPyrLK(now.left, now.right, corners, None, winSize=(21, 21))
+        disparity = (corners - in_right)[:, 0]
+        ok = (found[:, 0] == 1) & (disparity[:, 0] > 0.5) & (np.abs(disparity[:, 1]) < 1)
+        pixels, depth = corners[ok, 0], K[0, 0] * baseline / disparity[ok, 0]
+        points = np.c_[(pixels - K[:2, 2]) * depth[:, None] / np.diag(K)[:2], depth]
+        tracked, found, _ = cv2.calcOpticalFlowPyrLK(now.left, after.left, pixels[:, None].astype(np.float32), None, winSize=(21, 21))
+        keep = found[:, 0] == 1
+        solved, rvec, tvec, inliers = cv2.solvePnPRansac(points[keep], tracked[keep, 0], K, None, reprojectionError=1.0)
+        assert solved and len(inliers) > 100
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = cv2.Rodrigues(rvec)[0], tvec[:, 0]
+        forward, left, yaw = planar(np.linalg.inv(step))
+        assert (forward, left) == pytest.approx(after.odometry[:2], abs=0.01)
+        assert yaw == pytest.approx(after.odometry[2], abs=math.radians(0.2))
+
+
+def test_scanline_profile_shift_follows_the_turn(world):
+    """RatSLAM's scanline odometry: the best shift of column-mean intensity profiles times
+    degrees per pixel gives the rotation (turning left moves the scene right)."""
+    seq = 16  # in a corner of the small loop, turning 9.4° per frame
+    profiles = [world[k].left[60:180].astype(np.float32).mean(axis=0) for k in (seq, seq + 1)]
+    width = len(profiles[0])
+
+    def cost(shift: int) -> float:  # scene moved right by `shift` pixels: now[u] ≈ after[u + shift]
+        now, after = profiles
+        if shift < 0:
+            return float(np.mean(np.abs(now[-shift:] - after[: width + shift])))
+        return float(np.mean(np.abs(now[: width - shift] - after[shift:])))
+
+    shift = min(range(-40, 41), key=cost)
+    # Near the image centre one pixel subtends 1/fx radians.
+    assert math.degrees(shift / world.camera.fx) == pytest.approx(math.degrees(world[seq + 1].odometry[2]), abs=1.0)
+    assert abs(math.degrees(world[seq + 1].odometry[2])) > 3
