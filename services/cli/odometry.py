@@ -1,0 +1,55 @@
+"""`gridslam odometry --source SPEC --estimator NAME`: run a frame source through an ego-motion
+estimator offline (one process, no Zenoh), write the dead-reckoned trajectory, ground truth,
+metrics and plots, and print a Metric | Value | Unit table (docs/egomotion.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from services.egomotion import ESTIMATORS
+from services.egomotion.offline import run_offline, summary_rows
+from services.evaluation.results import format_table
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "odometry",
+        help="run a source through an ego-motion estimator offline and score it",
+        description="Run a frame source through an ego-motion estimator in one process; write egomotion.tum and "
+        "egomotion.kitti.txt (dead-reckoned), groundtruth.tum when known, increments.csv, metrics.json, config.json "
+        "and trajectory.png; print a metric table.",
+    )
+    parser.add_argument("--source", required=True, metavar="SPEC",
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+    parser.add_argument("--estimator", choices=tuple(ESTIMATORS), help="default: the one the preset or config names")
+    parser.add_argument("--preset", metavar="NAME", help="dataset preset for the source and the estimator (nubot, kitti, stlucia, synthetic)")
+    parser.add_argument("--config", type=Path, metavar="FILE", help="estimator TOML overriding the preset (docs/egomotion.md)")
+    parser.add_argument("--calibration", type=Path, metavar="FILE", help="camera calibration file (docs/sources.md)")
+    parser.add_argument("--start", type=int, default=0, help="first frame (default 0)")
+    parser.add_argument("--stop", type=int, help="frame to stop before (default: the end)")
+    parser.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
+    parser.add_argument("--n-frames", type=int, metavar="N", help="process at most N frames")
+    parser.add_argument("--reference", type=Path, metavar="FILE",
+                        help="reference to score against, row k = frame k: TUM, KITTI poses, or a CSV of increments "
+                        "(forward,left,yaw or LIBVISO2's table)")
+    parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    result, folder = run_offline(
+        args.source,
+        estimator=args.estimator,
+        preset=args.preset,
+        config_file=args.config,
+        calibration=args.calibration,
+        start=args.start,
+        stop=args.stop,
+        step=args.step,
+        n_frames=args.n_frames,
+        reference=args.reference,
+        out=args.out,
+    )
+    print(format_table(summary_rows(result)))
+    print(f"results: {folder}")
+    return 0
