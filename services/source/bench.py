@@ -1,0 +1,47 @@
+"""`gridslam bench source`: how fast the synthetic world renders, and how long it takes to build.
+
+Prints a Markdown table of medians over the frames rendered (one core: OpenCV threads are
+limited to 1 unless --threads says otherwise).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import cv2
+
+from services.source.synthetic import SyntheticWorld, WorldConfig, default_camera
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    width, _, height = text.partition("x")
+    return int(width), int(height)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="gridslam bench source", description=__doc__)
+    parser.add_argument("--frames", type=int, default=200, help="frames rendered per configuration")
+    parser.add_argument("--sizes", default="320x240,640x480", help="comma-separated image sizes WxH")
+    parser.add_argument("--threads", type=int, default=1, help="OpenCV threads")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    cv2.setNumThreads(args.threads)
+    print(f"Synthetic world rendering, seed {args.seed}, {args.frames} frames each, OpenCV threads {args.threads}\n")
+    print("| image | camera | build (s) | median ms/frame | frames/s (median) |")
+    print("|---|---|---:|---:|---:|")
+    for size in args.sizes.split(","):
+        width, height = parse_size(size)
+        for mono in (True, False):
+            started = time.perf_counter()
+            world = SyntheticWorld(WorldConfig(seed=args.seed), camera=default_camera(width, height), mono=mono)
+            build = time.perf_counter() - started
+            times = []
+            for seq in range(min(args.frames, len(world))):
+                started = time.perf_counter()
+                world[seq]
+                times.append(time.perf_counter() - started)
+            median = statistics.median(times)
+            print(f"| {width}×{height} | {'mono' if mono else 'stereo'} | {build:.2f} | {1000 * median:.2f} | {1 / median:.0f} |")
+    return 0
