@@ -1,0 +1,236 @@
+"""Reading the flow of the activity lattice between two frames.
+
+Every decoder takes the rectified fields of the previous and the current frame and returns
+the shift (dx, dy) in lattice columns and rows such that
+
+    np.roll(prev_field, (dy, dx), axis=(0, 1)) ≈ field
+
+(the authors' ``circshift(fr_old, [shift_y, shift_x])``). The network moves its lattice toward
+larger columns for world +x and toward smaller rows for world +y (see network.py), so the
+direction of travel in the world is (dx, −dy) (paper eq. 5). Shifts are searched in
+[−search, search] on each axis.
+
+- ``paper``: the authors' exhaustive search with MATLAB's ``norm`` of a matrix, which is the
+  spectral norm (largest singular value): dx outer, dy inner, from −search to search, the first
+  strict minimum is kept. Computed exactly but without 361 SVDs: a batched power iteration
+  gives a lower bound of every shift's norm; only shifts whose lower bound does not exceed
+  the exact norm of the best candidate can be the minimum, and only those get an exact norm.
+- ``fft``: the same search with the Frobenius norm. Circular shifts keep ‖prev‖, so the argmin
+  of ‖roll(prev, s) − field‖_F is the argmax of the cross-correlation, all shifts at once by FFT.
+- ``subpixel``: both fields low-passed (the lattice period is ~27 neurons; the stationary 2×2
+  input pattern sits at 0.5 cycles/neuron and biases integer shifts toward even values), the
+  integer peak of the cross-correlation, then Newton steps on its band-limited (Fourier)
+  interpolant to a fraction of a neuron.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.fft
+
+from services.gridcells.network import GridCellError
+
+# Low-pass of the subpixel decoder: a Gaussian weight exp(−|k|²/(2σ²)) on the cross-power
+# spectrum, σ in cycles per neuron. It keeps the lattice fundamental (~1/27 ≈ 0.037) and its
+# second harmonic, and removes the 2×2 input pattern (0.5) and the neuron-scale detail.
+LOWPASS_SIGMA = 0.06
+# Bins beyond this radius (cycles/neuron) carry < 1e-7 of the weight: left out of the refinement.
+_REFINE_RADIUS = 0.34
+_NEWTON_STEPS = 4
+# decode_paper: power iterations for all shifts, then for the shifts still in the running.
+_PAPER_ITERATIONS = 6
+_PAPER_REFINE_ITERATIONS = 24
+
+
+def _check(prev_field: np.ndarray, field: np.ndarray, search: int) -> tuple[np.ndarray, np.ndarray]:
+    prev_field = np.asarray(prev_field)
+    field = np.asarray(field)
+    if prev_field.ndim != 2 or prev_field.shape != field.shape or prev_field.shape[0] != prev_field.shape[1]:
+        raise GridCellError(f"decoder needs two square fields of equal shape, got {prev_field.shape} and {field.shape}")
+    if not 0 <= search < prev_field.shape[0] // 2:
+        raise GridCellError(f"shift search range {search} must be in [0, n/2) for n={prev_field.shape[0]}")
+    return prev_field, field
+
+
+def _window(surface: np.ndarray, search: int) -> np.ndarray:
+    """Values of an n×n circular surface indexed [sy, sx] as a (2S+1)² array indexed
+    [dx + S, dy + S]: dx outer, dy inner, the authors' loop order."""
+    offsets = np.arange(-search, search + 1)
+    return surface[np.ix_(offsets, offsets)].T
+
+
+def _first_argmax(values: np.ndarray, search: int) -> tuple[int, int]:
+    # np.argmax returns the first maximum in C order, i.e. dx outer, dy inner.
+    ix, iy = np.unravel_index(int(np.argmax(values)), values.shape)
+    return int(ix) - search, int(iy) - search
+
+
+def _cross_correlation(prev_field: np.ndarray, field: np.ndarray, weight=None) -> np.ndarray:
+    """corr[sy, sx] = Σ roll(prev, (sy, sx)) · field, optionally band-limited by ``weight``
+    (a weight on the rfft2 cross-power spectrum)."""
+    cross = np.conj(scipy.fft.rfft2(prev_field)) * scipy.fft.rfft2(field)
+    if weight is not None:
+        cross *= weight
+    return scipy.fft.irfft2(cross, s=prev_field.shape)
+
+
+def decode_fft(prev_field, field, search: int = 9) -> tuple[float, float]:
+    """Integer shift minimising the Frobenius distance ‖roll(prev, (dy, dx)) − field‖_F,
+    first minimum in the authors' loop order."""
+    prev_field, field = _check(prev_field, field, search)
+    corr = _cross_correlation(prev_field.astype(np.float64), field.astype(np.float64))
+    dx, dy = _first_argmax(_window(corr, search), search)
+    return float(dx), float(dy)
+
+
+def _lowpass_weight(n: int) -> np.ndarray:
+    ky = np.fft.fftfreq(n)[:, None]
+    kx = np.fft.rfftfreq(n)[None, :]
+    return np.exp(-(kx**2 + ky**2) / (2 * LOWPASS_SIGMA**2))
+
+
+def decode_subpixel(prev_field, field, search: int = 9) -> tuple[float, float]:
+    """Shift to a fraction of a neuron: low-passed cross-correlation, integer peak in the
+    search window, then Newton steps on the band-limited correlation
+    c(s) = Σ_k m_k·Re(X_k·exp(2πi k·s)) (X the weighted cross-power spectrum, m_k = 2 for the
+    rfft columns that stand for a conjugate pair)."""
+    prev_field, field = _check(prev_field, field, search)
+    n = prev_field.shape[0]
+    cross = np.conj(scipy.fft.rfft2(prev_field.astype(np.float64))) * scipy.fft.rfft2(field.astype(np.float64))
+    cross *= _lowpass_weight(n)
+    corr = scipy.fft.irfft2(cross, s=(n, n))
+    dx, dy = _first_argmax(_window(corr, search), search)
+
+    ky = np.fft.fftfreq(n)[:, None] * np.ones((1, n // 2 + 1))
+    kx = np.fft.rfftfreq(n)[None, :] * np.ones((n, 1))
+    keep = kx**2 + ky**2 <= _REFINE_RADIUS**2
+    multiplicity = np.where((kx == 0) | (kx == 0.5), 1.0, 2.0)[keep]
+    kx, ky, spectrum = 2 * np.pi * kx[keep], 2 * np.pi * ky[keep], cross[keep] * multiplicity
+    shift = np.array([float(dx), float(dy)])
+    for _ in range(_NEWTON_STEPS):
+        rotated = spectrum * np.exp(1j * (kx * shift[0] + ky * shift[1]))
+        gradient = -np.array([kx @ rotated.imag, ky @ rotated.imag])
+        re = rotated.real
+        hessian = -np.array([[kx * kx @ re, kx * ky @ re], [kx * ky @ re, ky * ky @ re]])
+        if not (np.linalg.det(hessian) > 0 and hessian[0, 0] < 0):
+            break  # not at a maximum: keep the integer peak (or the last good estimate)
+        step = -np.linalg.solve(hessian, gradient)
+        if np.max(np.abs(step)) > 1.0:
+            break  # the interpolant's peak is not near this integer peak
+        shift += step
+        if np.max(np.abs(step)) < 1e-6:
+            break
+    return float(shift[0]), float(shift[1])
+
+
+def _spectral_norm(matrix: np.ndarray) -> float:
+    # MATLAB/Octave norm(M) for a matrix: the largest singular value (LAPACK SVD).
+    return float(np.linalg.norm(matrix, 2))
+
+
+class _ShiftNorms:
+    """Lower bounds of ‖D_s‖₂, D_s = roll(A, (sy, sx)) − B, for many shifts s at once, by
+    power iteration on D_sᵀD_s: ‖D_s v‖ ≤ ‖D_s‖₂ for every unit v.
+
+    Each shift's vector is a row of V (S×n). With D_s v = roll(A·roll(v, −sx), sy) − B·v and
+    D_sᵀu = roll(Aᵀ·roll(u, −sy), sx) − Bᵀ·u, one iteration for all shifts is four S×n by
+    n×n products and four gathers. The products are batched in blocks of 16 rows: OpenBLAS
+    keeps products that small on one thread, and its threads stall badly when the cores are
+    busy with other processes."""
+
+    BLOCK = 16
+
+    def __init__(self, prev_field: np.ndarray, field: np.ndarray, sx: np.ndarray, sy: np.ndarray):
+        self.n = field.shape[0]
+        # Row vectors: (A·v)ᵀ = vᵀ·Aᵀ and (Aᵀ·u)ᵀ = uᵀ·A.
+        self.a_t, self.b_t, self.a, self.b = prev_field.T.copy(), field.T.copy(), prev_field, field
+        self.sx, self.sy = sx, sy
+        self.start = np.full(self.n, 1.0 / np.sqrt(self.n))
+        self.vectors = np.tile(self.start, (sx.size, 1))
+        self.bounds = np.zeros(sx.size)
+
+    def _product(self, rows: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+        count = rows.shape[0]
+        padded = -count % self.BLOCK
+        if padded:
+            rows = np.concatenate([rows, np.zeros((padded, self.n))])
+        return (rows.reshape(-1, self.BLOCK, self.n) @ matrix).reshape(-1, self.n)[:count]
+
+    def iterate(self, active: np.ndarray, iterations: int) -> None:
+        """Power iterations on the shifts ``active`` (indices); their bounds only grow."""
+        n, lines = self.n, np.arange(self.n)[None, :]
+        sx, sy = self.sx[active][:, None], self.sy[active][:, None]
+        plus_x, minus_x, plus_y, minus_y = (lines + sx) % n, (lines - sx) % n, (lines + sy) % n, (lines - sy) % n
+        rows = np.arange(active.size)[:, None]
+        v = self.vectors[active]
+        bound = self.bounds[active]
+        for _ in range(iterations):
+            u = self._product(v[rows, plus_x], self.a_t)[rows, minus_y] - self._product(v, self.b_t)
+            bound = np.maximum(bound, np.linalg.norm(u, axis=1))  # ‖v‖ = 1
+            v = self._product(u[rows, plus_y], self.a)[rows, minus_x] - self._product(u, self.b)
+            length = np.linalg.norm(v, axis=1)
+            null = length == 0  # D_sᵀD_s v = 0: restart there (the bound stays valid)
+            v[null] = self.start
+            v[~null] /= length[~null, None]
+        self.vectors[active] = v
+        self.bounds[active] = bound
+
+
+def decode_paper(prev_field, field, search: int = 9) -> tuple[float, float]:
+    """The authors' shift search: for dx (outer) and dy (inner) from −search to search, the
+    spectral norm ‖roll(prev, (dy, dx)) − field‖₂ (MATLAB ``norm``); the first strict minimum
+    wins.
+
+    Exact, with few SVDs: a shift whose lower bound (power iteration, _ShiftNorms) exceeds
+    the exact norm of some shift can be neither the minimum nor tied with it. So: bounds for
+    all shifts, the exact norm of the lowest bound as a ceiling, more iterations for the
+    shifts still under the ceiling, and exact norms, in loop order, for those left."""
+    prev_field, field = _check(prev_field, field, search)
+    prev_field = prev_field.astype(np.float64)
+    field = field.astype(np.float64)
+    offsets = np.arange(-search, search + 1)
+    sx, sy = (g.ravel() for g in np.meshgrid(offsets, offsets, indexing="ij"))  # dx outer, dy inner
+    norms = _ShiftNorms(prev_field, field, sx, sy)
+    exact: dict[int, float] = {}
+
+    def norm_of(index: int) -> float:
+        if index not in exact:
+            exact[index] = _spectral_norm(np.roll(prev_field, (sy[index], sx[index]), axis=(0, 1)) - field)
+        return exact[index]
+
+    # Rounding in the bounds (matrix products: ~n ulps of the fields' norms) must not drop
+    # the true minimum: a relative and an absolute margin.
+    slack = 1e-12 * (np.linalg.norm(prev_field) + np.linalg.norm(field))
+
+    def beaten(index: int, ceiling: float) -> bool:
+        return norms.bounds[index] > ceiling * (1 + 1e-9) + slack
+
+    norms.iterate(np.arange(sx.size), _PAPER_ITERATIONS)
+    ceiling = norm_of(int(np.argmin(norms.bounds)))
+    running = np.array([i for i in range(sx.size) if i not in exact and not beaten(i, ceiling)], dtype=int)
+    if running.size:
+        norms.iterate(running, _PAPER_REFINE_ITERATIONS)
+    best_index, best = -1, np.inf
+    for index in sorted(set(running.tolist()) | exact.keys()):  # ascending = the loop order
+        if beaten(index, min(best, ceiling)):
+            continue  # its norm exceeds a known one: neither the minimum nor tied with it
+        value = norm_of(index)
+        if value < best:
+            best_index, best = index, value
+    return float(sx[best_index]), float(sy[best_index])
+
+
+def decode_paper_bruteforce(prev_field, field, search: int = 9) -> tuple[float, float]:
+    """The authors' loop as written (one SVD per shift): the reference decode_paper is tested
+    against. About (2·search+1)² SVDs of n×n."""
+    prev_field, field = _check(prev_field, field, search)
+    best, shift = np.inf, (0.0, 0.0)
+    for dx in range(-search, search + 1):
+        for dy in range(-search, search + 1):
+            value = _spectral_norm(np.roll(prev_field.astype(np.float64), (dy, dx), axis=(0, 1)) - field)
+            if value < best:
+                best, shift = value, (float(dx), float(dy))
+    return shift
+
+
+DECODERS = {"paper": decode_paper, "fft": decode_fft, "subpixel": decode_subpixel}

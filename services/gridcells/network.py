@@ -1,0 +1,251 @@
+"""The periodic continuous attractor network of grid cells (Burak & Fiete 2009), as Lu et al.
+(ROBIO 2016) use it and as their published MATLAB code runs it.
+
+The sheet is n×n neurons on a torus. Every neuron belongs to one of four direction
+sub-populations laid out in 2×2 blocks; with 0-based (row, column) parity
+
+    (0, 0) left   (0, 1) up
+    (1, 0) down   (1, 1) right
+
+(the authors' ``typeL``, ``typeU``, ``typeD``, ``typeR``). A neuron of direction d projects
+through the centre-surround kernel W0(x) = a·exp(−γ|x|²) − exp(−β|x|²) (Burak & Fiete eq. 3,
+β = 3/λ², γ = 1.05β) shifted by l neurons: +l columns for right, −l for left, +l rows for down,
+−l rows for up. Its feed-forward input is B = 1 + α·(e_d·v) (eq. 4) with e_right = (1, 0),
+e_left = (−1, 0), e_up = (0, 1), e_down = (0, −1) in world (x, y). So the activity lattice
+flows toward larger columns when the agent moves toward world +x and toward smaller rows
+when it moves toward world +y.
+
+One network step, as the authors' code does it (their code differs from the paper's text in
+the gain 5 and the clip at 10):
+
+    f = max(0, W*r + B)                            rectified field (what decoders compare)
+    r ← min(clip, r + dt/τ·(gain·f − r))           gain 5, clip 10
+
+Speed: the 2×2 layout makes the sheet four interleaved (n/2)×(n/2) sub-lattices, one per
+direction. The recurrent input of sub-lattice e is Σ_d k_ed ⊛ r_d, a periodic convolution on
+the sub-lattice with k_ed(M) = W_d(2M + o_e − o_d), so one step is 4 forward and 4 inverse
+real FFTs of (n/2)² with 16 precomputed kernel spectra (DESIGN.md), and the state is kept in
+that (4, n/2, n/2) layout between steps.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass, fields
+
+import numpy as np
+import scipy.fft
+
+from services.common.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
+
+# γ/β of Burak & Fiete eq. 3 (the authors' ``alphabar``).
+GAMMA_OVER_BETA = 1.05
+
+# Direction sub-populations in sub-lattice order: name, (row parity, column parity), and the
+# world unit vector e_d of eq. 4. The order is the 2×2 block read row by row.
+DIRECTIONS = ("left", "up", "down", "right")
+OFFSETS = ((0, 0), (0, 1), (1, 0), (1, 1))
+PREFERRED = np.array([(-1.0, 0.0), (0.0, 1.0), (0.0, -1.0), (1.0, 0.0)])
+
+
+class GridCellError(DataError):
+    """Input the grid-cell integrator cannot use (NaN/inf motion, bad array shapes)."""
+
+
+@dataclass(frozen=True)
+class NetworkParams:
+    """Network parameters. Defaults are the paper's and the authors' code's values."""
+
+    n: int = 128  # neurons per side of the torus (even: 2×2 direction blocks)
+    l: int = 2  # kernel shift along the preferred direction, neurons (B&F eq. 2, ``wtphase``)
+    tau: float = 5.0  # neuron time constant, ms
+    dt: float = 0.5  # integration step, ms
+    lam: float = 18.0  # λ of eq. 3 (β = 3/λ²); the lattice that forms has a period of ~27
+    a: float = 1.0  # excitatory amplitude of eq. 3 (a ≤ (γ/β)²)
+    alpha: float = 2.0  # velocity gain of eq. 4 (0.2 suggested for very fast vehicles)
+    steps_per_frame: int = 50  # network steps per camera frame
+    settle_steps: int = 1000  # zero-velocity steps from r = 0 before the first frame
+    envelope_steps: int = 800  # settling steps 1..envelope_steps-1 use the envelope input
+    gain: float = 5.0  # authors' code: r ← r + dt/τ·(gain·f − r)
+    clip: float = 10.0  # authors' code: r ≤ clip
+
+    def __post_init__(self) -> None:
+        if self.n < 8 or self.n % 2:
+            raise ConfigError(f"network size n={self.n}: must be an even number >= 8 (2×2 direction blocks)")
+        if not 0 <= self.l < self.n // 2:
+            raise ConfigError(f"kernel shift l={self.l}: must be in [0, n/2)")
+        for name in ("tau", "dt", "lam", "gain", "clip"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ConfigError(f"network parameter {name}={value}: must be a positive number")
+        for name in ("a", "alpha"):
+            if not np.isfinite(getattr(self, name)):
+                raise ConfigError(f"network parameter {name}={getattr(self, name)}: must be finite")
+        if self.steps_per_frame < 1 or self.settle_steps < 0 or self.envelope_steps < 0:
+            raise ConfigError("steps_per_frame must be >= 1, settle_steps and envelope_steps >= 0")
+
+
+def shifted_kernels(params: NetworkParams) -> np.ndarray:
+    """The four shifted weight kernels, shape (4, n, n), in the authors' array layout: the
+    kernel centre x = 0 sits at index n/2 (x runs from −n/2 to n/2−1), float64."""
+    n = params.n
+    beta = 3.0 / params.lam**2
+    xbar2 = beta * np.arange(-n // 2, n // 2, dtype=np.float64) ** 2
+    dist2 = xbar2[:, None] + xbar2[None, :]
+    filt = params.a * np.exp(-GAMMA_OVER_BETA * dist2) - np.exp(-dist2)
+    # Circular shift within the n×n kernel array, as the authors' circshift does.
+    shifts = {"left": (0, -params.l), "up": (-params.l, 0), "down": (params.l, 0), "right": (0, params.l)}
+    return np.stack([np.roll(filt, shifts[d], axis=(0, 1)) for d in DIRECTIONS])
+
+
+def split(full: np.ndarray) -> np.ndarray:
+    """(…, n, n) sheet → (…, 4, n/2, n/2) direction sub-lattices (order of DIRECTIONS)."""
+    return np.stack([full[..., i::2, j::2] for i, j in OFFSETS], axis=-3)
+
+
+def merge(sub: np.ndarray) -> np.ndarray:
+    """(…, 4, m, m) sub-lattices → (…, 2m, 2m) sheet; the inverse of split()."""
+    m = sub.shape[-1]
+    full = np.empty(sub.shape[:-3] + (2 * m, 2 * m), dtype=sub.dtype)
+    for d, (i, j) in enumerate(OFFSETS):
+        full[..., i::2, j::2] = sub[..., d, :, :]
+    return full
+
+
+def _settle_key(params: NetworkParams) -> NetworkParams:
+    # Settling does not depend on the velocity gain or the steps per frame: normalise them so
+    # networks that differ only there share one cached settled state.
+    return NetworkParams(**{f.name: getattr(params, f.name) for f in fields(params)} | {"alpha": 2.0, "steps_per_frame": 50})
+
+
+def settled_state(params: NetworkParams = NetworkParams()) -> tuple[np.ndarray, np.ndarray]:
+    """The state r and rectified field f after the authors' settling, float64, read-only.
+
+    Deterministic and the same for every run with these parameters, so it is computed once
+    per process (a cached pure function; callers get read-only arrays and copy them).
+    """
+    return _settled_state(_settle_key(params))
+
+
+@functools.lru_cache(maxsize=4)
+def _settled_state(params: NetworkParams) -> tuple[np.ndarray, np.ndarray]:
+    """The authors' settling, step by step as their code runs it (the loop before the frames):
+
+    r = 0; for iter = 1..settle_steps: the envelope exp(−4|x|²/(n/2)²) multiplies B = 1 for
+    iter < envelope_steps and is 1 from then on; the recurrent input is a zero-padded
+    (aperiodic) convolution over a 2n×2n FFT for all settling steps (their ``ftX`` spectra;
+    only the frames use the periodic ``ftX_small``); f = max(0, input); r ← min(clip, r +
+    dt/τ·(gain·f − r)).
+    """
+    n, big, half = params.n, 2 * params.n, params.n // 2
+    x = np.arange(-half, half, dtype=np.float64)
+    envelope = np.exp(-4.0 * (x[:, None] ** 2 + x[None, :] ** 2) / half**2)
+    kernels = shifted_kernels(params)
+    # Linear convolution of the n×n sheet with the n×n kernel array (centre at index n/2)
+    # through a 2n×2n FFT; the output window [n/2, 3n/2) is centred as in the authors' code.
+    kernel_spectra = scipy.fft.rfft2(kernels, s=(big, big))
+    masks = np.zeros((4, n, n))
+    for d, (i, j) in enumerate(OFFSETS):
+        masks[d, i::2, j::2] = 1.0
+    rate = params.dt / params.tau
+    r = np.zeros((n, n))
+    field = np.zeros((n, n))
+    for iteration in range(1, params.settle_steps + 1):
+        feedforward = envelope if iteration < params.envelope_steps else 1.0
+        spectrum = (scipy.fft.rfft2(r * masks, s=(big, big)) * kernel_spectra).sum(axis=0)
+        recurrent = scipy.fft.irfft2(spectrum, s=(big, big))[half : half + n, half : half + n]
+        field = np.maximum(recurrent + feedforward, 0.0)
+        r = np.minimum(params.clip, r + rate * (params.gain * field - r))
+    r.setflags(write=False)
+    field.setflags(write=False)
+    log.debug("settled a %d×%d network in %d steps", n, n, params.settle_steps)
+    return r, field
+
+
+def velocity_input(params: NetworkParams, velocity: tuple[float, float]) -> np.ndarray:
+    """B = 1 + α·(e_d·v) per direction sub-population (B&F eq. 4), shape (4,)."""
+    vx, vy = velocity
+    if not (np.isfinite(vx) and np.isfinite(vy)):
+        raise GridCellError(f"network velocity ({vx}, {vy}) is not finite")
+    return 1.0 + params.alpha * (PREFERRED @ np.array([vx, vy], dtype=np.float64))
+
+
+class GridNetwork:
+    """The n×n periodic network. ``run(v)`` advances one camera frame (steps_per_frame steps)
+    with the world-frame velocity v in network units per frame and returns the rectified
+    field of the last step."""
+
+    def __init__(self, params: NetworkParams = NetworkParams(), *, dtype=np.float32, settle: bool = True):
+        self.params = params
+        self.dtype = np.dtype(dtype)
+        if self.dtype not in (np.float32, np.float64):
+            raise ConfigError(f"network dtype {self.dtype}: must be float32 or float64")
+        m = params.n // 2
+        periodic = np.fft.ifftshift(shifted_kernels(params), axes=(-2, -1))  # centre x = 0 at index 0
+        # k_ed(M) = W_d(2M + o_e − o_d): rows e (output sub-lattice), columns d (input).
+        sub_kernels = np.empty((4, 4, m, m))
+        for e, (ei, ej) in enumerate(OFFSETS):
+            for d, (di, dj) in enumerate(OFFSETS):
+                sub_kernels[e, d] = np.roll(periodic[d], (di - ei, dj - ej), axis=(0, 1))[::2, ::2]
+        complex_dtype = np.result_type(self.dtype, np.complex64)
+        self._kernel_spectra = scipy.fft.rfft2(sub_kernels).astype(complex_dtype)
+        self._rate = self.dtype.type(params.dt / params.tau)
+        self._decay = self.dtype.type(1.0 - params.dt / params.tau)
+        self._drive = self.dtype.type(params.dt / params.tau * params.gain)
+        self._clip = self.dtype.type(params.clip)
+        self._r = np.zeros((4, m, m), dtype=self.dtype)
+        self._f = np.zeros((4, m, m), dtype=self.dtype)
+        self._spectrum = np.empty((4, m, m // 2 + 1), dtype=complex_dtype)
+        if settle:
+            self.settle()
+
+    # --- state -----------------------------------------------------------------------------
+    @property
+    def state(self) -> np.ndarray:
+        """r, the n×n activity (a copy)."""
+        return merge(self._r)
+
+    @state.setter
+    def state(self, value: np.ndarray) -> None:
+        value = np.asarray(value)
+        n = self.params.n
+        if value.shape != (n, n):
+            raise GridCellError(f"network state has shape {value.shape}, expected ({n}, {n})")
+        if not np.all(np.isfinite(value)):
+            raise GridCellError("network state contains NaN or inf")
+        self._r = split(value).astype(self.dtype)
+
+    @property
+    def field(self) -> np.ndarray:
+        """f, the rectified field of the last step, n×n (a copy; what decoders compare)."""
+        return merge(self._f)
+
+    def settle(self) -> None:
+        """Reset to the authors' settled state (1000 steps from r = 0; cached per process)."""
+        r, f = settled_state(self.params)
+        self._r = split(r).astype(self.dtype)
+        self._f = split(f).astype(self.dtype)
+
+    # --- dynamics --------------------------------------------------------------------------
+    def run(self, velocity: tuple[float, float], steps: int | None = None) -> np.ndarray:
+        """Advance one frame (``steps_per_frame`` steps, or ``steps``) with B = 1 + α·(e_d·v),
+        v the world-frame velocity in network units per frame. Returns the field (a copy)."""
+        feedforward = velocity_input(self.params, velocity).astype(self.dtype)[:, None, None]
+        m = self.params.n // 2
+        r, f, spectrum, kernels = self._r, self._f, self._spectrum, self._kernel_spectra
+        for _ in range(self.params.steps_per_frame if steps is None else steps):
+            rates = scipy.fft.rfft2(r)
+            np.multiply(kernels[:, 0], rates[0], out=spectrum)
+            for d in range(1, 4):
+                spectrum += kernels[:, d] * rates[d]
+            recurrent = scipy.fft.irfft2(spectrum, s=(m, m), overwrite_x=True)
+            np.add(recurrent, feedforward, out=f)
+            np.maximum(f, 0, out=f)
+            # r ← min(clip, (1 − dt/τ)·r + dt/τ·gain·f)
+            r *= self._decay
+            r += self._drive * f
+            np.minimum(r, self._clip, out=r)
+        return self.field
