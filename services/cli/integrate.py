@@ -9,7 +9,6 @@ from pathlib import Path
 from services.evaluation.results import format_table
 from services.gridcells.decoders import DECODERS
 from services.gridcells.motion_io import FORMATS
-from services.gridcells.offline import integrate, integration_table
 
 
 def velocity_scale(text: str) -> float | str:
@@ -55,6 +54,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from services.gridcells.offline import integrate, integration_table  # numpy/matplotlib work: loaded only when run
+
     result = integrate(
         args.input, fmt=args.fmt, decoder=args.decoder, velocity_scale=args.velocity_scale, n_frames=args.n_frames,
         noise_trans=args.noise_trans, noise_rot_deg=args.noise_rot, seed=args.seed, out=args.out,

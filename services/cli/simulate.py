@@ -8,7 +8,6 @@ import argparse
 from services.cli.integrate import add_network_flags
 from services.evaluation.results import format_table
 from services.gridcells.decoders import DECODERS
-from services.gridcells.offline import simulate, simulation_table
 from services.gridcells.simulation import WalkParams
 
 
@@ -39,6 +38,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from services.gridcells.offline import simulate, simulation_table  # numpy/matplotlib work: loaded only when run
+
     result = simulate(
         n_frames=args.n_frames, seed=args.seed, decoders=args.decoders, noise_trans=args.noise_trans,
         noise_rot_deg=args.noise_rot, velocity_scale=args.velocity_scale, firing_frames=args.firing_frames,

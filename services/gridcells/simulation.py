@@ -12,7 +12,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage, signal
+import scipy.fft
+from scipy import ndimage
 
 log = logging.getLogger(__name__)
 
@@ -146,8 +147,10 @@ def autocorrelogram(rate: np.ndarray) -> np.ndarray:
     valid = np.isfinite(rate).astype(float)
     values = np.where(valid > 0, rate, 0.0)
 
-    def corr(a, b):
-        return signal.fftconvolve(a, b[::-1, ::-1], mode="full")
+    shape = (2 * rate.shape[0] - 1, 2 * rate.shape[1] - 1)
+
+    def corr(a, b):  # full linear cross-correlation: a convolved with b flipped, by FFT
+        return scipy.fft.irfft2(scipy.fft.rfft2(a, shape) * scipy.fft.rfft2(b[::-1, ::-1], shape), shape)
 
     n = corr(valid, valid)
     sum_a, sum_b = corr(values, valid), corr(valid, values)
