@@ -51,6 +51,19 @@ def test_integrate_kitti_poses_with_noise_writes_ground_truth(shared_data, tmp_p
     assert "grid endpoint error" in done.stdout
 
 
+def test_saturating_speed_warns_and_is_counted(tmp_path):
+    """100 network units per metre at 0.1 m per frame drives the network far beyond its
+    linear range: the run finishes, warns once on stderr and counts the frames."""
+    motion = tmp_path / "fast.csv"
+    motion.write_text("forward,left,yaw\n" + "0.1,0,0\n" * 8)
+    done = gridslam("integrate", motion, "--decoder", "fft", "--velocity-scale", 100, "--out", tmp_path / "fast")
+    assert done.returncode == 0, done.stderr
+    assert "saturated" in done.stderr and "WARNING" in done.stderr
+    metrics = json.loads((tmp_path / "fast" / "metrics.json").read_text())
+    assert metrics["saturations"] == 8
+    assert "| saturated frames" in done.stdout
+
+
 def test_bad_input_is_one_line_and_exit_1(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("forward,left,yaw\n0.1,0,0\n0.1,NaN,0\n")
