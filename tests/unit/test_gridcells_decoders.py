@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from services.gridcells.decoders import DECODERS, decode_paper, decode_paper_bruteforce
-from services.gridcells.network import GridCellError, GridNetwork
+from services.gridcells.decoders import DECODERS, _spectral_norm, decode_paper, decode_paper_bruteforce
+from services.gridcells.network import GridCellError, GridNetwork, NetworkParams
 
 
 @pytest.fixture(scope="module")
@@ -18,8 +18,9 @@ def lattice() -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def moving_pair() -> tuple[np.ndarray, np.ndarray]:
-    """Two consecutive fields of a moving lattice (not an exact circular shift of each other)."""
-    network = GridNetwork(dtype=np.float64)
+    """Two consecutive fields of a moving 64×64 lattice (not an exact circular shift of each
+    other; 64×64 keeps the brute-force loop's 361 SVDs cheap)."""
+    network = GridNetwork(NetworkParams(n=64), dtype=np.float64)
     previous = network.run((0.06, 0.03))
     return previous, network.run((0.06, 0.03))
 
@@ -53,6 +54,14 @@ def test_paper_decoder_equals_the_authors_brute_force_loop(moving_pair):
     assert decode_paper(previous, field) == decode_paper_bruteforce(previous, field)
     # And on a pair whose best shift is zero (ties and flat minima are the hard case).
     assert decode_paper(field, field) == (0.0, 0.0)
+
+
+def test_spectral_norm_equals_lapack(lattice, moving_pair):
+    rng = np.random.default_rng(1)
+    matrices = [np.roll(lattice, (3, -2), axis=(0, 1)) - lattice, moving_pair[1] - moving_pair[0], rng.normal(size=(40, 40))]
+    for matrix in matrices:
+        assert _spectral_norm(matrix) == pytest.approx(np.linalg.norm(matrix, 2), rel=1e-13)
+    assert _spectral_norm(np.zeros((16, 16))) == 0.0
 
 
 def test_paper_decoder_keeps_the_first_minimum_in_loop_order():
