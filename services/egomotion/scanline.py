@@ -56,6 +56,11 @@ class ScanlineParams:
     # Refine the best shift to a fraction of a column by a parabola through the three lowest
     # differences (not in the papers; off reproduces their integer shifts).
     subpixel: bool = False
+    # Resample each profile to equal steps of viewing angle (1/fx radians) before matching, so
+    # that a turn shifts every part of the profile equally (a pinhole image stretches toward
+    # its edges: a 3° turn moves the centre 1/cos²(35°) = 1.5 times less than the edge of a
+    # 70° view). Needs the camera; not in the papers, off reproduces them.
+    equiangular: bool = False
 
     def __post_init__(self) -> None:
         if self.camera_hz <= 0:
@@ -77,6 +82,20 @@ def intensity_profile(image: np.ndarray, x_min: int, x_max: int, y_min: int, y_m
     x_min, y_min = max(0, min(x_min, x_max - 1)), max(0, min(y_min, y_max - 1))
     crop = image[y_min:y_max, x_min:x_max]
     return crop.mean(axis=0, dtype=np.float64) / 255.0
+
+
+def _crop_start(x_min: int, width: int) -> int:
+    return max(0, min(x_min, width - 1))
+
+
+def equiangular_profile(profile: np.ndarray, first_column: int, fx: float, cx: float) -> np.ndarray:
+    """``profile`` (columns first_column, first_column+1, ...) resampled at equal steps of
+    viewing angle, 1/fx radians apart, by linear interpolation: column u sees the angle
+    atan((u − cx)/fx) from the optical axis."""
+    columns = first_column + np.arange(len(profile))
+    angles = np.arctan((columns - cx) / fx)
+    samples = np.arange(angles[0], angles[-1], 1.0 / fx)
+    return np.interp(cx + fx * np.tan(samples), columns, profile)
 
 
 @dataclass(frozen=True)
@@ -138,6 +157,8 @@ class ScanlineEstimator:
         p = self.params
         vtrans = intensity_profile(image, p.vtrans_image_x_min, p.vtrans_image_x_max, p.vtrans_image_y_min, p.vtrans_image_y_max)
         vrot = intensity_profile(image, p.vrot_image_x_min, p.vrot_image_x_max, p.vrot_image_y_min, p.vrot_image_y_max)
+        if p.equiangular and self.camera is not None and p.camera_fov_deg is None:
+            vrot = equiangular_profile(vrot, _crop_start(p.vrot_image_x_min, image.shape[1]), self.camera.fx, self.camera.cx)
         previous, self._previous = self._previous, (vtrans, vrot)
         if previous is None or previous[0].shape != vtrans.shape or previous[1].shape != vrot.shape:
             return zero_increment()

@@ -1,0 +1,107 @@
+"""Conventions, parameters, presets and the estimator factory of services/egomotion."""
+
+import math
+
+import numpy as np
+import pytest
+
+from services.egomotion import (
+    ESTIMATORS,
+    EstimatorConfigError,
+    load_estimator_config,
+    make_estimator,
+    preset_names,
+    read_config_file,
+)
+from services.egomotion.base import (
+    increment_from_transform,
+    invert_transform,
+    transform_from_increment,
+    transform_from_rt,
+)
+from services.egomotion.scene import pinhole
+from services.evaluation.trajectory import Trajectory, camera_to_planar, planar_increments
+
+
+def test_increment_round_trip_and_direction():
+    transform = transform_from_increment(0.3, -0.05, math.radians(10))
+    forward, left, yaw = increment_from_transform(transform)
+    assert (forward, left, math.degrees(yaw)) == pytest.approx((0.3, -0.05, 10.0), abs=1e-12)
+    # A counter-clockwise turn moves a point straight ahead to the camera's right (+x).
+    ahead = transform @ np.array([0.0, 0.0, 5.0, 1.0])
+    assert ahead[0] > 0
+    # Moving forward brings a point ahead closer (p_cur = T p_prev).
+    assert (transform_from_increment(1.0, 0.0, 0.0) @ np.array([0.0, 0.0, 5.0, 1.0]))[2] == pytest.approx(4.0)
+
+
+def test_increments_agree_with_evaluation_convention():
+    """Composing camera poses and converting with the evaluation service's camera_to_planar
+    and planar_increments gives the increments increment_from_transform reports."""
+    rng = np.random.default_rng(3)
+    steps = [(rng.uniform(0, 0.5), rng.uniform(-0.1, 0.1), rng.uniform(-0.3, 0.3)) for _ in range(20)]
+    poses = [np.eye(4)]
+    for step in steps:
+        tilt = transform_from_rt(rng.normal(0, 0.01, 3), np.zeros(3))  # small pitch/roll noise
+        poses.append(poses[-1] @ invert_transform(transform_from_increment(*step)) @ tilt)
+    planar = camera_to_planar(Trajectory.from_matrices(np.arange(len(poses)), np.stack(poses)))
+    forward, left, yaw = planar_increments(planar)
+    ours = np.array([increment_from_transform(invert_transform(b) @ a) for a, b in zip(poses[:-1], poses[1:])])
+    assert np.allclose(ours[:, 0], forward[1:], atol=2e-3)
+    assert np.allclose(ours[:, 1], left[1:], atol=2e-3)
+    assert np.allclose(ours[:, 2], yaw[1:], atol=2e-3)
+
+
+def test_unknown_estimator_and_parameters_are_named():
+    camera = pinhole(320, 240)
+    with pytest.raises(EstimatorConfigError, match="unknown estimator 'orb'"):
+        make_estimator("orb", camera)
+    with pytest.raises(EstimatorConfigError, match="unknown parameter.*vrot_min"):
+        make_estimator("scanline", camera, {"vrot_min": 3})
+    with pytest.raises(EstimatorConfigError, match="camera_hz must be a number"):
+        make_estimator("scanline", camera, {"camera_hz": "fast"})
+    with pytest.raises(EstimatorConfigError, match="max_shift_px must be an integer"):
+        make_estimator("scanline", camera, {"max_shift_px": 2.5})
+    with pytest.raises(EstimatorConfigError, match="failure_motion"):
+        make_estimator("stereo", camera, {"failure_motion": "guess"})
+
+
+def test_stereo_needs_a_baseline_and_mono_a_camera():
+    with pytest.raises(EstimatorConfigError, match="stereo calibration"):
+        make_estimator("stereo", None)
+    with pytest.raises(EstimatorConfigError, match="stereo calibration"):
+        make_estimator("stereo", pinhole(320, 240, baseline=0.0))
+    with pytest.raises(EstimatorConfigError, match="intrinsics"):
+        make_estimator("mono", None)
+    assert make_estimator("scanline", None).name == "scanline"
+
+
+def test_presets_load_and_build_every_estimator():
+    assert set(preset_names()) >= {"nubot", "kitti", "stlucia", "synthetic"}
+    camera = pinhole(640, 480)
+    for preset in preset_names():
+        default, params = load_estimator_config(preset)
+        assert default in ESTIMATORS
+        for name in ESTIMATORS:
+            assert make_estimator(name, camera, params[name]).name == name
+    # St Lucia keeps OpenRatSLAM's published values.
+    _, params = load_estimator_config("stlucia")
+    assert params["scanline"]["vtrans_scaling"] == 1000.0 and params["scanline"]["camera_fov_deg"] == 53.0
+
+
+def test_config_file_overrides_preset_and_bad_files_name_themselves(tmp_path):
+    good = tmp_path / "mine.toml"
+    good.write_text('estimator = "scanline"\n[scanline]\nmax_shift_px = 7\n')
+    default, params = load_estimator_config("nubot", good)
+    assert default == "scanline"
+    assert params["scanline"]["max_shift_px"] == 7 and params["scanline"]["vtrans_scaling"] == 77.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[sterio]\nx = 1\n")
+    with pytest.raises(EstimatorConfigError, match=r"bad.toml: unknown key 'sterio'"):
+        read_config_file(bad)
+    bad.write_text("[stereo]\nmin_inliers = 'many'\n")
+    with pytest.raises(EstimatorConfigError, match=r"bad.toml: \[stereo\]: min_inliers must be an integer"):
+        read_config_file(bad)
+    with pytest.raises(EstimatorConfigError, match="config file not found"):
+        read_config_file(tmp_path / "absent.toml")
+    with pytest.raises(EstimatorConfigError, match="unknown estimator preset"):
+        load_estimator_config("mars")
