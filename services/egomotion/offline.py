@@ -144,7 +144,7 @@ def run_offline(
     """Open the source ``spec``, build the estimator from the preset and config file, run
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
     ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs."""
-    from services.egomotion import load_estimator_config, make_estimator, preset_names
+    from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator, preset_names
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
 
@@ -155,7 +155,9 @@ def run_offline(
     default, all_params = load_estimator_config(preset if preset in preset_names() else None, config_file)
     name = estimator or default
     if name is None:
-        raise EstimatorConfigError("no estimator given: use --estimator (scanline, stereo, mono, passthrough) or a preset that names one")
+        raise EstimatorConfigError(f"no estimator given: use --estimator ({', '.join(ESTIMATORS)}) or a preset that names one")
+    if name not in ESTIMATORS:
+        raise EstimatorConfigError(f"unknown estimator {name!r} (available: {', '.join(ESTIMATORS)})")
     if n_frames is not None:
         if n_frames < 1:
             raise EstimatorConfigError(f"--n-frames must be at least 1, got {n_frames}")
