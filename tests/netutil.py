@@ -53,6 +53,19 @@ def start(args: list[str], **kwargs) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True, **kwargs)
 
 
+def port_open(port: int) -> bool:
+    with socket.socket() as sock:
+        return sock.connect_ex(("127.0.0.1", port)) == 0
+
+
+def start_router(port: int) -> subprocess.Popen:
+    """`gridslam router` on a loopback port, returned once it accepts connections."""
+    router = start(["router", "--listen", endpoint(port)])
+    wait_for(lambda: port_open(port) or router.poll() is not None)
+    assert router.poll() is None, router.communicate()[1]
+    return router
+
+
 def stop(process: subprocess.Popen, timeout: float = 5.0) -> tuple[int, str, str]:
     """SIGTERM, then SIGKILL if needed; returns (exit code, stdout, stderr)."""
     if process.poll() is None:

@@ -8,6 +8,7 @@ from services.common.runtime import add_runtime_flags, runtime_from_args
 
 # Service name → adapter module; each exposes add_arguments(parser) and main(runtime, args) -> int.
 SERVICES: dict[str, str] = {
+    "gridcells": "services.gridcells.service",
 }
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import threading
 from pathlib import Path
 from typing import Literal
 
@@ -18,6 +19,7 @@ from services.common.errors import ConfigError
 log = logging.getLogger(__name__)
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+OPEN_TIMEOUT_MS = 1000   # one attempt to reach the router when opening a client session
 
 
 class RuntimeConfig(BaseModel):
@@ -89,11 +91,12 @@ def zenoh_config(runtime: RuntimeConfig) -> zenoh.Config:
             config.insert_json5("listen/endpoints", json.dumps(runtime.listen))
         config.insert_json5("scouting/multicast/enabled", json.dumps(runtime.multicast_scouting))
         if runtime.mode == "client":
-            # Retry the router forever at a short period so that a restarted router is
+            # Give up opening after OPEN_TIMEOUT_MS so the caller stays responsive to signals
+            # (a native call blocked inside zenoh.open never runs Python's handlers), and once
+            # open, retry a lost router at a short period so that a restarted router is
             # rejoined within a second (issue 7); the default backs off to several seconds.
-            config.insert_json5("connect/timeout_ms", "-1")
-            config.insert_json5("connect/exit_on_failure", "false")
-            config.insert_json5("connect/retry", '{"period_init_ms": 200, "period_max_ms": 500, "period_increase_factor": 1.5}')
+            config.insert_json5("connect/timeout_ms", str(OPEN_TIMEOUT_MS))
+            config.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 1.5}')
         for name, value in runtime.cfg.items():
             config.insert_json5(name, value)
     except ConfigError:
@@ -103,12 +106,30 @@ def zenoh_config(runtime: RuntimeConfig) -> zenoh.Config:
     return config
 
 
-def open_session(runtime: RuntimeConfig) -> zenoh.Session:
-    """Open the process's one Zenoh session (DESIGN.md, "Runtime")."""
+def open_session(runtime: RuntimeConfig, stop: threading.Event | None = None) -> zenoh.Session:
+    """Open the process's one Zenoh session (DESIGN.md, "Runtime").
+
+    Without `stop`, one attempt: a client that cannot reach its router is a one-line
+    ConfigError. With `stop`, a service keeps trying until the router answers or `stop` is set
+    (services may start before the router); it then raises ServiceStopped."""
     config = zenoh_config(runtime)
-    try:
-        session = zenoh.open(config)
-    except Exception as error:
-        raise ConfigError(f"cannot open a Zenoh session ({runtime.mode}, connect {runtime.connect}, listen {runtime.listen}): {error}") from None
+    attempt = 0
+    while True:
+        attempt += 1
+        try:
+            session = zenoh.open(config)
+            break
+        except Exception as error:
+            if stop is None:
+                raise ConfigError(f"cannot open a Zenoh session ({runtime.mode}, connect {runtime.connect}, "
+                                  f"listen {runtime.listen}): {error}") from None
+            if attempt == 1:
+                log.warning("waiting for a Zenoh router at %s (%s)", ", ".join(runtime.connect), error)
+            if stop.wait(0.2):
+                raise ServiceStopped("stopped before a Zenoh session could be opened") from None
     log.info("zenoh session %s open (%s)", session.info.zid(), runtime.mode)
     return session
+
+
+class ServiceStopped(Exception):
+    """A stop was requested while the session was still being opened."""

@@ -27,7 +27,7 @@ import zenoh
 from schemas import Header, ServiceStatus, Time
 from schemas.base import Message
 from services.common import codec, topics
-from services.common.runtime import RuntimeConfig, open_session
+from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
 
 log = logging.getLogger(__name__)
 
@@ -170,7 +170,10 @@ class Service:
         """Open the session, serve until stopped, close everything. Returns the exit code."""
         previous = self._install_signal_handlers()
         try:
-            self.session = open_session(self.runtime)
+            try:
+                self.session = open_session(self.runtime, self._stop)
+            except ServiceStopped:
+                return 0
             self.setup()
             self._entities.append(self.session.liveliness().declare_token(
                 topics.health_key(self.robot, self.name, self.instance)))

@@ -1,0 +1,23 @@
+"""Configuration of the gridcells service (table `[gridcells]`, env `GRIDSLAM_GRIDCELLS_*`,
+presets in services/gridcells/presets/)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class GridCellsConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    integrator: Literal["grid", "deadreckoning"] = Field(
+        "grid", description="grid: the periodic attractor network; deadreckoning: plain integration of the increments (baseline).")
+    decoder: Literal["paper", "fft", "subpixel"] = Field("subpixel", description="How the lattice flow is read between frames.")
+    velocity_scale: float | Literal["auto"] = Field(
+        "auto", description="Network input units per metre; auto derives it from typical_speed.")
+    typical_speed: float = Field(
+        0.5, gt=0, description="Typical distance travelled per frame in metres, used by velocity_scale = auto.")
+    neurons: int = Field(128, ge=16, le=512, description="Side n of the n×n network.")
+    activity_every: int = Field(5, ge=0, description="Publish grid/activity every this many frames (0: never).")
+    activity_size: int = Field(64, ge=8, le=512, description="Side of the downsampled activity image.")

@@ -1,0 +1,85 @@
+"""gridcells: integrate ego-motion with the grid-cell attractor network (or dead reckoning)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+
+import cv2
+import numpy as np
+
+from schemas import EgoMotion, GridActivity, GridPose, Twist, Vector3
+from services.common.config import load_config
+from services.common.convert import image_to_msg, planar_pose
+from services.common.runtime import RuntimeConfig
+from services.common.service import Service
+from services.gridcells.config import GridCellsConfig
+from services.gridcells.integrator import DeadReckoning, GridCellIntegrator, auto_velocity_scale
+from services.gridcells.network import NetworkParams
+
+log = logging.getLogger(__name__)
+
+
+def make_integrator(config: GridCellsConfig):
+    """The pure integrator a config describes."""
+    if config.integrator == "deadreckoning":
+        return DeadReckoning()
+    params = NetworkParams(n=config.neurons)
+    scale = (auto_velocity_scale(np.array([config.typical_speed]), params)
+             if config.velocity_scale == "auto" else float(config.velocity_scale))
+    log.info("grid-cell network n=%d, decoder %s, velocity scale %.4g units/m", config.neurons, config.decoder, scale)
+    return GridCellIntegrator(params, decoder=config.decoder, velocity_scale=scale)
+
+
+class GridCellsService(Service):
+    name = "gridcells"
+
+    def __init__(self, runtime: RuntimeConfig, config: GridCellsConfig, instance: str | None = None):
+        super().__init__(runtime, instance)
+        self.config = config
+        self.integrator = make_integrator(config)
+        self.frames = 0
+        self.previous_stamp: float | None = None
+
+    def setup(self) -> None:
+        self.subscribe("egomotion", self.on_egomotion)
+
+    def on_egomotion(self, message: EgoMotion) -> None:
+        increment = message.increment
+        step = self.integrator.step(increment.forward, increment.left, increment.yaw)
+        stamp = message.header.stamp.to_seconds()
+        dt = stamp - self.previous_stamp if self.previous_stamp is not None else 0.0
+        self.previous_stamp = stamp
+        twist = Twist(linear=Vector3(x=step.step_length / dt), angular=Vector3(z=increment.yaw / dt)) if dt > 0 else Twist()
+        header = message.header.model_copy(update={"frame_id": "odom"})
+        self.publish("grid/pose", GridPose(
+            header=header, pose=planar_pose(step.pose.x, step.pose.y, step.pose.heading), twist=twist,
+            heading=step.pose.heading, lattice_shift=step.shift, step_length=step.step_length,
+            saturated=step.saturated, integrator=self.config.integrator,
+        ))
+        self.frames += 1
+        every = self.config.activity_every
+        if every and self.config.integrator == "grid" and self.frames % every == 0:
+            self.publish("grid/activity", self.activity(header, step.shift))
+
+    def activity(self, header, shift) -> GridActivity:
+        field = np.asarray(self.integrator.activity, dtype=np.float32)
+        size = self.config.activity_size
+        small = cv2.resize(field, (size, size), interpolation=cv2.INTER_AREA)
+        peak = float(small.max())
+        scaled = np.zeros_like(small, dtype=np.uint8) if peak <= 0 else np.clip(small * (255.0 / peak), 0, 255).astype(np.uint8)
+        return GridActivity(header=header, image=image_to_msg(scaled), neurons=field.shape[0], max_rate=peak,
+                            lattice_shift=shift)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
+    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--velocity-scale", help="network units per metre, or auto (default)")
+    parser.add_argument("--preset", help="dataset preset (services/gridcells/presets/)")
+
+
+def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
+    config = load_config(GridCellsConfig, "gridcells", preset=args.preset, config_file=args.config, overrides={
+        "integrator": args.integrator, "decoder": args.decoder, "velocity_scale": args.velocity_scale})
+    return GridCellsService(runtime, config, args.instance).run()
