@@ -68,7 +68,9 @@ def _fast(image: np.ndarray, threshold: int, border: int, mask: np.ndarray | Non
 class TrackParams:
     window_px: int = 21
     pyramid_levels: int = 3
-    forward_backward_px: float = 1.0  # a track is kept only if tracking it back lands this close
+    # A track is kept only if tracking it back lands this close; 0 skips the backward pass
+    # (half the cost; for stereo matching, where the epipolar row check rejects bad matches).
+    forward_backward_px: float = 1.0
 
 
 def track(
@@ -97,23 +99,24 @@ def track(
     tracked, status, _ = cv2.calcOpticalFlowPyrLK(
         previous, current, points, start, winSize=window, maxLevel=params.pyramid_levels, criteria=criteria, flags=flags
     )
-    back, status_back, _ = cv2.calcOpticalFlowPyrLK(
-        current,
-        previous,
-        tracked,
-        points.copy(),
-        winSize=window,
-        maxLevel=params.pyramid_levels,
-        criteria=criteria,
-        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )
+    good = status.ravel() == 1
+    if params.forward_backward_px > 0:
+        back, status_back, _ = cv2.calcOpticalFlowPyrLK(
+            current,
+            previous,
+            tracked,
+            points.copy(),
+            winSize=window,
+            maxLevel=params.pyramid_levels,
+            criteria=criteria,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        fb_error = np.linalg.norm(back.reshape(-1, 2) - points.reshape(-1, 2), axis=1)
+        good &= (status_back.ravel() == 1) & (fb_error < params.forward_backward_px)
     tracked = tracked.reshape(-1, 2)
-    fb_error = np.linalg.norm(back.reshape(-1, 2) - points.reshape(-1, 2), axis=1)
     height, width = current.shape[:2]
     good = (
-        (status.ravel() == 1)
-        & (status_back.ravel() == 1)
-        & (fb_error < params.forward_backward_px)
+        good
         & (tracked[:, 0] >= 0)
         & (tracked[:, 0] <= width - 1)
         & (tracked[:, 1] >= 0)

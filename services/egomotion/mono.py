@@ -45,7 +45,7 @@ class MonoParams:
     fast_threshold: int = 20
     bucket_size_px: int = 50
     features_per_bucket: int = 4
-    klt_window_px: int = 21
+    klt_window_px: int = 15
     pyramid_levels: int = 3
     forward_backward_px: float = 1.0
     ransac_threshold_px: float = 1.0

@@ -44,12 +44,14 @@ class StereoParams:
     fast_threshold: int = 20
     bucket_size_px: int = 50
     features_per_bucket: int = 4
-    klt_window_px: int = 21
+    klt_window_px: int = 15
     # Stereo matching needs a deeper pyramid than frame-to-frame tracking: disparities of close
     # objects reach ~100 px (NuBot: f·b = 59 px·m, so 0.6 m away is 99 px).
     stereo_pyramid_levels: int = 4
     track_pyramid_levels: int = 3
     forward_backward_px: float = 1.0
+    # Forward–backward check of the left–right matches (0: off, the row check alone).
+    stereo_forward_backward_px: float = 1.0
     max_row_error_px: float = 1.0
     min_disparity_px: float = 0.5
     ransac_reprojection_px: float = 2.0  # LIBVISO2's inlier threshold
@@ -97,7 +99,7 @@ class StereoEstimator:
         self.camera = camera
         self._keyframe: _StereoKeyframe | None = None
         self._last = zero_increment()
-        self._stereo_track = TrackParams(params.klt_window_px, params.stereo_pyramid_levels, params.forward_backward_px)
+        self._stereo_track = TrackParams(params.klt_window_px, params.stereo_pyramid_levels, params.stereo_forward_backward_px)
         self._frame_track = TrackParams(params.klt_window_px, params.track_pyramid_levels, params.forward_backward_px)
 
     def estimate(self, frame: Any) -> Increment:
