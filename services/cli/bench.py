@@ -8,6 +8,7 @@ import importlib
 # Benchmark name → module with main(argv) -> int.
 BENCHMARKS: dict[str, str] = {
     "source": "services.source.bench",
+    "gridcells": "services.gridcells.bench",
     "egomotion": "services.egomotion.bench",
 }
 

@@ -12,9 +12,10 @@ direction of travel in the world is (dx, −dy) (paper eq. 5). Shifts are search
 
 - ``paper``: the authors' exhaustive search with MATLAB's ``norm`` of a matrix, which is the
   spectral norm (largest singular value): dx outer, dy inner, from −search to search, the first
-  strict minimum is kept. Computed exactly but without 361 SVDs: a batched power iteration
-  gives a lower bound of every shift's norm; only shifts whose lower bound does not exceed
-  the exact norm of the best candidate can be the minimum, and only those get an exact norm.
+  strict minimum is kept. The same result without 361 SVDs: a batched power iteration gives a
+  lower bound of every shift's norm; only shifts whose lower bound does not exceed the exact
+  norm of the best candidate can be the minimum, and only those get an exact norm (usually
+  one per frame). decode_paper_bruteforce is the loop as written, for tests and benchmarks.
 - ``fft``: the same search with the Frobenius norm. Circular shifts keep ‖prev‖, so the argmin
   of ‖roll(prev, s) − field‖_F is the argmax of the cross-correlation, all shifts at once by FFT.
 - ``subpixel``: both fields low-passed (the lattice period is ~27 neurons; the stationary 2×2
@@ -24,6 +25,8 @@ direction of travel in the world is (dx, −dy) (paper eq. 5). Shifts are search
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import scipy.fft
@@ -66,47 +69,48 @@ def _first_argmax(values: np.ndarray, search: int) -> tuple[int, int]:
     return int(ix) - search, int(iy) - search
 
 
-def _cross_correlation(prev_field: np.ndarray, field: np.ndarray, weight=None) -> np.ndarray:
-    """corr[sy, sx] = Σ roll(prev, (sy, sx)) · field, optionally band-limited by ``weight``
-    (a weight on the rfft2 cross-power spectrum)."""
-    cross = np.conj(scipy.fft.rfft2(prev_field)) * scipy.fft.rfft2(field)
-    if weight is not None:
-        cross *= weight
-    return scipy.fft.irfft2(cross, s=prev_field.shape)
+def _cross_power(prev_field: np.ndarray, field: np.ndarray) -> np.ndarray:
+    """conj(F[prev])·F[field] on the rfft2 grid: its inverse transform at [sy, sx] is the
+    cross-correlation Σ roll(prev, (sy, sx))·field."""
+    return np.conj(scipy.fft.rfft2(prev_field.astype(np.float64))) * scipy.fft.rfft2(field.astype(np.float64))
 
 
 def decode_fft(prev_field, field, search: int = 9) -> tuple[float, float]:
     """Integer shift minimising the Frobenius distance ‖roll(prev, (dy, dx)) − field‖_F,
     first minimum in the authors' loop order."""
     prev_field, field = _check(prev_field, field, search)
-    corr = _cross_correlation(prev_field.astype(np.float64), field.astype(np.float64))
+    corr = scipy.fft.irfft2(_cross_power(prev_field, field), s=field.shape)
     dx, dy = _first_argmax(_window(corr, search), search)
     return float(dx), float(dy)
 
 
-def _lowpass_weight(n: int) -> np.ndarray:
-    ky = np.fft.fftfreq(n)[:, None]
-    kx = np.fft.rfftfreq(n)[None, :]
-    return np.exp(-(kx**2 + ky**2) / (2 * LOWPASS_SIGMA**2))
+@functools.lru_cache(maxsize=8)
+def _subpixel_grid(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For an n×n rfft2 grid: the low-pass weight, and for the bins kept in the refinement
+    their mask, angular frequencies 2πkx, 2πky (rad/neuron) and multiplicity (2 for the rfft
+    columns that stand for a conjugate pair). Read-only."""
+    ky = np.fft.fftfreq(n)[:, None] * np.ones((1, n // 2 + 1))
+    kx = np.fft.rfftfreq(n)[None, :] * np.ones((n, 1))
+    weight = np.exp(-(kx**2 + ky**2) / (2 * LOWPASS_SIGMA**2))
+    keep = kx**2 + ky**2 <= _REFINE_RADIUS**2
+    multiplicity = np.where((kx == 0) | (kx == 0.5), 1.0, 2.0)[keep]
+    arrays = (weight, keep, 2 * np.pi * kx[keep], 2 * np.pi * ky[keep], multiplicity)
+    for array in arrays:
+        array.setflags(write=False)
+    return arrays
 
 
 def decode_subpixel(prev_field, field, search: int = 9) -> tuple[float, float]:
-    """Shift to a fraction of a neuron: low-passed cross-correlation, integer peak in the
-    search window, then Newton steps on the band-limited correlation
-    c(s) = Σ_k m_k·Re(X_k·exp(2πi k·s)) (X the weighted cross-power spectrum, m_k = 2 for the
-    rfft columns that stand for a conjugate pair)."""
+    """Shift to a fraction of a neuron: the low-passed cross-correlation, its integer peak in
+    the search window, then Newton steps on its band-limited interpolant
+    c(s) = Σ_k m_k·Re(X_k·exp(2πi k·s)) (X the weighted cross-power spectrum)."""
     prev_field, field = _check(prev_field, field, search)
-    n = prev_field.shape[0]
-    cross = np.conj(scipy.fft.rfft2(prev_field.astype(np.float64))) * scipy.fft.rfft2(field.astype(np.float64))
-    cross *= _lowpass_weight(n)
+    n = field.shape[0]
+    weight, keep, kx, ky, multiplicity = _subpixel_grid(n)
+    cross = _cross_power(prev_field, field) * weight
     corr = scipy.fft.irfft2(cross, s=(n, n))
     dx, dy = _first_argmax(_window(corr, search), search)
-
-    ky = np.fft.fftfreq(n)[:, None] * np.ones((1, n // 2 + 1))
-    kx = np.fft.rfftfreq(n)[None, :] * np.ones((n, 1))
-    keep = kx**2 + ky**2 <= _REFINE_RADIUS**2
-    multiplicity = np.where((kx == 0) | (kx == 0.5), 1.0, 2.0)[keep]
-    kx, ky, spectrum = 2 * np.pi * kx[keep], 2 * np.pi * ky[keep], cross[keep] * multiplicity
+    spectrum = cross[keep] * multiplicity
     shift = np.array([float(dx), float(dy)])
     for _ in range(_NEWTON_STEPS):
         rotated = spectrum * np.exp(1j * (kx * shift[0] + ky * shift[1]))
