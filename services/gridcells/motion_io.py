@@ -66,6 +66,9 @@ class MotionInput:
     code): the frame first turns by yaw, then moves by (forward, left) in its new body frame.
     `start` is the pose (x, y, heading) before row 0 in the input's world frame.
     `groundtruth` is the true trajectory (N poses) when the input is one.
+    `network_rotation` (rad) turns the world frame the integrators run in away from the output
+    frame (results are turned back): the network is not rotation invariant (four preferred
+    directions, a hexagonal lattice, integer shifts), so this fixes which world inputs it sees.
     """
 
     path: Path
@@ -77,6 +80,7 @@ class MotionInput:
     start: tuple[float, float, float] = (0.0, 0.0, 0.0)
     heading: np.ndarray | None = None
     groundtruth: Trajectory | None = None
+    network_rotation: float = 0.0
 
     def __len__(self) -> int:
         return int(self.stamps.shape[0])
@@ -220,11 +224,12 @@ def load_csv(path: Path) -> MotionInput:
         # change asin(-Tt13) is counter-clockwise positive seen from above.
         yaw, right, forward = values[:, 0], values[:, 1], values[:, 2]
         increments = np.column_stack([forward, -right, yaw])
-        # The authors' world frame has x = the start's right, y = the start's forward (their
-        # code rotates camera x/z by the heading), i.e. a start heading of +90 degrees in ours;
-        # starting there feeds the network exactly the world-frame inputs their code computed
+        # The output starts at the origin heading along x (the planar convention). The
+        # authors' code ran the network in a world with x = the start's right and y = the
+        # start's forward (it rotates camera x/z by the heading), i.e. turned by +90 degrees:
+        # running it there feeds the network exactly the world-frame inputs their code computed
         # (../shared/data/seed_reference/nubot_first40_frames.csv).
-        return MotionInput(path, "csv", "libviso2", "body", stamps, increments, start=(0.0, 0.0, math.pi / 2))
+        return MotionInput(path, "csv", "libviso2", "body", stamps, increments, network_rotation=math.pi / 2)
     heading = values[:, 2].copy() if optional else None
     return MotionInput(path, "csv", "world", "world", stamps, values[:, :2].copy(), heading=heading)
 

@@ -19,7 +19,7 @@ from services.common.errors import ConfigError
 from services.evaluation import metrics as evaluation
 from services.evaluation.plots import plot_heatmaps, plot_series, plot_trajectories
 from services.evaluation.results import results_dir, write_config, write_json
-from services.evaluation.trajectory import Trajectory, write_tum
+from services.evaluation.trajectory import Trajectory, wrap_angle, write_tum
 from services.gridcells.decoders import DECODERS
 from services.gridcells.integrator import DeadReckoning, GridCellIntegrator, auto_velocity_scale
 from services.gridcells.motion_io import MotionInput, add_noise, load_motion
@@ -68,36 +68,50 @@ def resolve_velocity_scale(motion: MotionInput, velocity_scale: float | str | No
     return scale
 
 
+def _network_heading0(motion: MotionInput) -> float:
+    """The integrators' start heading, in the world frame they run in (see MotionInput)."""
+    return motion.start[2] + motion.network_rotation
+
+
 def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
-    """Feed every row of `motion` to an integrator (GridCellIntegrator or DeadReckoning)."""
+    """Feed every row of `motion` to an integrator (GridCellIntegrator or DeadReckoning)
+    created with heading0 = _network_heading0(motion)."""
     n = len(motion)
     poses = np.zeros((n, 3))
     shifts = np.zeros((n, 2))
     body = motion.frame == "body"
-    increments = motion.increments
+    increments, heading_input = motion.increments, motion.heading
+    rotation = motion.network_rotation
+    if rotation and not body:  # world-frame rows are given in the output frame: turn them
+        c, s = math.cos(rotation), math.sin(rotation)
+        increments = increments @ np.array([[c, s], [-s, c]])
+        heading_input = None if heading_input is None else heading_input + rotation
     every = max(1, int(n * PROGRESS_EVERY))
     started = time.perf_counter()
     for k in range(n):
         if body:
             step = integrator.step(increments[k, 0], increments[k, 1], increments[k, 2])
         else:
-            heading = None if motion.heading is None else motion.heading[k]
+            heading = None if heading_input is None else heading_input[k]
             step = integrator.step_world(increments[k, 0], increments[k, 1], heading)
         poses[k] = step.pose.x, step.pose.y, step.pose.heading
         shifts[k] = step.shift
         if (k + 1) % every == 0 and name != "deadreckoning":
             log.info("%s: frame %d of %d (%.1f ms per frame)", name, k + 1, n, 1000 * (time.perf_counter() - started) / (k + 1))
     seconds = time.perf_counter() - started
-    # The integrators start at the origin; the input's world frame starts at `motion.start`
-    # (the heading is already the integrators' heading0).
+    # The integrators start at the origin of their (possibly turned) world frame: turn back
+    # and move to the input's start.
     x0, y0, _ = motion.start
-    trajectory = Trajectory.from_planar(motion.stamps, poses[:, 0] + x0, poses[:, 1] + y0, poses[:, 2])
+    c, s = math.cos(-rotation), math.sin(-rotation)
+    x = x0 + c * poses[:, 0] - s * poses[:, 1]
+    y = y0 + s * poses[:, 0] + c * poses[:, 1]
+    trajectory = Trajectory.from_planar(motion.stamps, x, y, wrap_angle(poses[:, 2] - rotation))
     return IntegrationRun(name, trajectory, shifts, int(integrator.saturations), seconds)
 
 
 def run_grid(motion: MotionInput, decoder: str, velocity_scale: float, params: NetworkParams = NetworkParams()) -> IntegrationRun:
     """The grid-cell integrator with one decoder over every row of `motion`."""
-    integrator = GridCellIntegrator(params, decoder=decoder, velocity_scale=velocity_scale, heading0=motion.start[2])
+    integrator = GridCellIntegrator(params, decoder=decoder, velocity_scale=velocity_scale, heading0=_network_heading0(motion))
     run = _drive(integrator, motion, decoder)
     if run.saturations:
         log.warning(
@@ -109,7 +123,7 @@ def run_grid(motion: MotionInput, decoder: str, velocity_scale: float, params: N
 
 def run_deadreckoning(motion: MotionInput) -> IntegrationRun:
     """The baseline over the same rows, same heading convention."""
-    return _drive(DeadReckoning(heading0=motion.start[2]), motion, "deadreckoning")
+    return _drive(DeadReckoning(heading0=_network_heading0(motion)), motion, "deadreckoning")
 
 
 # --- metrics ----------------------------------------------------------------------------------

@@ -59,18 +59,22 @@ def test_world_csv_with_and_without_heading(tmp_path):
 
 
 def test_nubot_libviso2_csv_reproduces_the_authors_world_inputs(shared_data):
-    """The LIBVISO2 table as body-frame increments, started at +90°, gives exactly the
-    world-frame velocities and headings the authors' code computed (seed_reference)."""
+    """The LIBVISO2 table as body-frame increments, integrated in the network's world frame
+    (turned by +90°), gives exactly the world-frame velocities and headings the authors'
+    code computed (seed_reference)."""
     motion = load_motion(shared_data / "nubot_scene1" / "libviso2_egomotion.csv")
     assert (motion.layout, len(motion)) == ("libviso2", 205)
-    assert motion.start[2] == pytest.approx(math.pi / 2)
+    assert motion.start == (0.0, 0.0, 0.0) and motion.network_rotation == pytest.approx(math.pi / 2)
     reference = np.genfromtxt(shared_data / "seed_reference" / "nubot_first40_frames.csv", delimiter=",", names=True)
     frames = reference["frame"].astype(int)
-    heading = motion.start[2] + np.cumsum(motion.increments[:, 2])
-    world_steps = np.diff(np.vstack([[0.0, 0.0], _world_path(motion)]), axis=0)
-    np.testing.assert_allclose(world_steps[frames, 0], reference["vel_x_world_m"], atol=1e-15)
-    np.testing.assert_allclose(world_steps[frames, 1], reference["vel_y_world_m"], atol=1e-15)
+    heading = motion.network_rotation + np.cumsum(motion.increments[:, 2])
+    forward, left = motion.increments[:, 0], motion.increments[:, 1]
+    np.testing.assert_allclose((forward * np.cos(heading) - left * np.sin(heading))[frames], reference["vel_x_world_m"], atol=1e-15)
+    np.testing.assert_allclose((forward * np.sin(heading) + left * np.cos(heading))[frames], reference["vel_y_world_m"], atol=1e-15)
     np.testing.assert_allclose(heading[frames] - math.pi / 2, reference["orientation_robot_rad"], atol=1e-12)
+    # In the output frame the robot starts along +x (forward) and drives away from the start.
+    x20, y20 = _world_path(motion)[20]
+    assert x20 > 0.3 and abs(y20) < 0.1
     # README: the LIBVISO2 path is 39.4 m long.
     assert motion.step_lengths().sum() == pytest.approx(39.4, abs=0.05)
 
