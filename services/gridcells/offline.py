@@ -52,6 +52,15 @@ class IntegrationRun:
     saturations: int
     seconds: float
 
+    def shift_stats(self) -> dict:
+        """Median and 95th percentile of the decoded lattice shift per frame (neurons) over
+        the moving frames: how far the lattice flows, i.e. how coarse an integer shift is."""
+        lengths = np.hypot(self.shifts[:, 0], self.shifts[:, 1])
+        lengths = lengths[lengths > 0]
+        if not len(lengths):
+            return {"median_shift_neurons": 0.0, "p95_shift_neurons": 0.0}
+        return {"median_shift_neurons": float(np.median(lengths)), "p95_shift_neurons": float(np.percentile(lengths, 95))}
+
 
 def resolve_velocity_scale(motion: MotionInput, velocity_scale: float | str | None, params: NetworkParams) -> float:
     """`auto` (or None): the integrator's rule on this input's per-frame speeds
@@ -222,7 +231,7 @@ def integrate(
         "saturations": grid.saturations,
         "seconds": grid.seconds,
         "ms_per_frame": 1000.0 * grid.seconds / len(motion),
-        "grid": trajectory_metrics(grid.trajectory, truth, deadreckoning.trajectory),
+        "grid": trajectory_metrics(grid.trajectory, truth, deadreckoning.trajectory) | grid.shift_stats(),
         "deadreckoning": trajectory_metrics(deadreckoning.trajectory, truth),
     }
     if truth is not None:
@@ -278,6 +287,7 @@ def integration_table(result: IntegrationResult) -> list[tuple[str, object, str]
         ("decoder", result.decoder, ""),
         ("velocity scale", result.velocity_scale, "network units/m"),
         ("saturated frames", m["saturations"], "frames"),
+        ("median lattice shift", m["grid"]["median_shift_neurons"], "neurons/frame"),
         ("time per frame", m["ms_per_frame"], "ms"),
         ("grid path length", grid["path_length_m"], "m"),
         ("dead-reckoning path length", dr["path_length_m"], "m"),
@@ -394,7 +404,7 @@ def simulate(
     for name, run in runs.items():
         metrics[name] = trajectory_metrics(run.trajectory, truth, deadreckoning.trajectory) | {
             "saturations": run.saturations, "ms_per_frame": 1000.0 * run.seconds / n_frames,
-        }
+        } | run.shift_stats()
     rate_map, score = None, None
     if firing_frames:
         firing_walk = long_walk.head(firing_frames)
