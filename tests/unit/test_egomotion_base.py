@@ -105,3 +105,18 @@ def test_config_file_overrides_preset_and_bad_files_name_themselves(tmp_path):
         read_config_file(tmp_path / "absent.toml")
     with pytest.raises(EstimatorConfigError, match="unknown estimator preset"):
         load_estimator_config("mars")
+
+
+def test_every_parameter_is_documented():
+    """docs/egomotion.md has a row for every estimator parameter (so the docs cannot go stale)."""
+    import dataclasses
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "egomotion.md").read_text()
+    missing = [
+        f"{name}.{field.name}"
+        for name, (_, params) in ESTIMATORS.items()
+        for field in dataclasses.fields(params)
+        if f"`{field.name}`" not in text
+    ]
+    assert not missing, f"undocumented parameters: {missing}"
