@@ -1,0 +1,270 @@
+// gridslam live viewer: one server-sent event stream of JSON state (services/viewer/state.py,
+// ViewerState.view), drawn into one SVG. Trajectories arrive as tails: {epoch, from, points}
+// appends to what is held when the epoch matches, replaces it otherwise.
+"use strict";
+
+const STAGES = ["ground_truth", "egomotion", "grid", "map"];
+const MIN_EXTENT_M = 2;        // the plot never zooms in closer than this many metres
+const MARGIN_PX = 24;
+const ARROW_GAIN = 4;          // the lattice shift arrow is drawn this many times its length
+
+const tracks = Object.fromEntries(STAGES.map((stage) => [stage, { epoch: null, points: [], pose: null }]));
+const experiences = new Map(); // id → [x, y]
+let links = [];                // [source, target, loop closure 0/1]
+let currentExperience = null;
+let updates = 0;
+let drawPending = false;
+
+const $ = (id) => document.getElementById(id);
+const svg = $("map");
+
+function applyState(state) {
+  updates += 1;
+  document.body.dataset.updates = String(updates);
+  $("robot").textContent = state.robot;
+  for (const stage of STAGES) {
+    const incoming = state.tracks[stage];
+    const track = tracks[stage];
+    if (incoming.from === 0 || incoming.epoch !== track.epoch) {
+      track.points = incoming.points;
+    } else if (incoming.from === track.points.length) {
+      for (const point of incoming.points) track.points.push(point);
+    } else {
+      // Out of step (cannot happen on one stream); the reconnection sends everything again.
+      source.close();
+      setTimeout(connect, 200);
+      return;
+    }
+    track.epoch = incoming.epoch;
+    track.pose = incoming.pose;
+  }
+  if (state.map) {
+    experiences.clear();
+    for (const [id, x, y] of state.map.experiences) experiences.set(id, [x, y]);
+    links = state.map.links;
+  }
+  currentExperience = state.current_experience;
+  showCounters(state.counters, state.connected);
+  showLattice(state.grid, state.lattice);
+  showCamera(state.camera, state.template);
+  showLoopClosures(state.loop_closures);
+  showServices(state.services);
+  if (!drawPending) {
+    drawPending = true;
+    requestAnimationFrame(draw);
+  }
+}
+
+// ------------------------------------------------------------------ counters and side panels
+function text(id, value) {
+  const element = $(id);
+  const shown = value === null || value === undefined ? "–" : String(value);
+  if (element.textContent !== shown) element.textContent = shown;
+}
+
+function showCounters(c, connected) {
+  text("frame", c.frame);
+  text("rate", c.rate_hz === null ? null : `${c.rate_hz.toFixed(1)} Hz`);
+  text("latency", c.latency_ms === null ? null : `${Math.round(c.latency_ms)} ms`);
+  text("latency-label", c.latency_stage ? `latency → ${c.latency_stage}` : "latency");
+  text("loop-closures", c.loop_closures);
+  text("experiences", c.experiences);
+  text("templates", c.templates);
+  text("decode-errors", c.decode_errors);
+  text("gaps", c.gaps);
+  text("services-alive", c.services_alive);
+  const activity = $("activity");
+  if (!connected) {
+    activity.textContent = "waiting for the Zenoh router";
+    activity.className = "badge off";
+  } else if (c.since_last_frame_s === null) {
+    activity.textContent = "no frames yet";
+    activity.className = "badge off";
+  } else if (c.since_last_frame_s > 2) {
+    activity.textContent = `idle ${Math.round(c.since_last_frame_s)} s`;
+    activity.className = "badge warn";
+  } else {
+    activity.textContent = "running";
+    activity.className = "badge on";
+  }
+}
+
+// Image endpoints are fetched one at a time per <img>: a new revision while one is loading
+// waits for it, so a slow link never piles up requests.
+function loadImage(img, url) {
+  if (img.dataset.loading === "1") {
+    img.dataset.pending = url;
+    return;
+  }
+  img.dataset.loading = "1";
+  img.src = url;
+}
+for (const img of [$("lattice"), $("camera")]) {
+  img.onload = img.onerror = () => {
+    img.dataset.loading = "0";
+    const pending = img.dataset.pending;
+    if (pending) {
+      img.dataset.pending = "";
+      loadImage(img, pending);
+    }
+  };
+}
+
+function showLattice(grid, lattice) {
+  if (lattice) loadImage($("lattice"), `lattice.png?r=${lattice.revision}`);
+  const shift = grid ? grid.shift : lattice ? lattice.shift : null;
+  if (!shift) return;
+  const line = $("shift-line");
+  // Columns grow rightwards and rows downwards in the image, as in the lattice shift (dx, dy).
+  const neurons = lattice ? lattice.neurons : 128;
+  line.setAttribute("x2", String((ARROW_GAIN * 2 * shift[0]) / neurons));
+  line.setAttribute("y2", String((ARROW_GAIN * 2 * shift[1]) / neurons));
+  let caption = `shift (${shift[0].toFixed(2)}, ${shift[1].toFixed(2)}) neurons, arrow ×${ARROW_GAIN}`;
+  if (grid) {
+    caption += ` · step ${(grid.step_length * 100).toFixed(1)} cm · ${grid.integrator}`;
+    if (grid.saturated) caption += ' <span class="tag saturated">saturated</span>';
+  }
+  $("lattice-caption").innerHTML = caption;
+}
+
+function showCamera(camera, template) {
+  if (camera) loadImage($("camera"), `camera.jpg?r=${camera.revision}`);
+  if (!template && !camera) return;
+  const parts = [];
+  if (camera) parts.push(`frame ${camera.seq}`);
+  if (template) {
+    const tag = template.new ? '<span class="tag new">new</span>' : '<span class="tag matched">matched</span>';
+    parts.push(`template ${template.id} ${tag} d=${template.distance.toFixed(3)}`);
+    if (!template.new) parts.push(`first seen at frame ${template.matched_frame}`);
+  }
+  if (parts.length) $("camera-caption").innerHTML = parts.join(" · ");
+}
+
+function showLoopClosures(closures) {
+  const list = $("loop-closure-list");
+  const html = closures.length
+    ? closures.map((c) => `<li>frame ${c.frame} ↔ frame ${c.matched_frame} · template ${c.template} · ${c.votes} votes</li>`).join("")
+    : '<li class="none">none yet</li>';
+  if (list.innerHTML !== html) list.innerHTML = html;
+}
+
+function showServices(rows) {
+  const body = document.querySelector("#health tbody");
+  const cell = (value) => `<td>${value === undefined || value === null ? "–" : value}</td>`;
+  const html = rows.map((row) => {
+    const kind = !row.alive ? "dead" : row.silent ? "silent" : "";
+    return `<tr class="${kind}" title="${row.alive ? "" : "no liveliness token"}${row.silent ? " no recent status" : ""}">` +
+      `<td><span class="dot"></span></td>${cell(row.service)}${cell(row.instance)}${cell(row.state)}` +
+      `${cell(row.received)}${cell(row.published)}${cell(row.decode_errors)}${cell(row.gaps)}${cell(row.stale)}${cell(row.uptime)}</tr>`;
+  }).join("");
+  if (body.innerHTML !== html) body.innerHTML = html;
+}
+
+// ------------------------------------------------------------------ the plot
+function niceStep(metres) {
+  const power = 10 ** Math.floor(Math.log10(metres));
+  for (const factor of [1, 2, 5, 10]) if (factor * power >= metres) return factor * power;
+  return 10 * power;
+}
+
+function draw() {
+  drawPending = false;
+  const width = svg.clientWidth;
+  const height = svg.clientHeight;
+  let xmin = Infinity, xmax = -Infinity, ymin = Infinity, ymax = -Infinity;
+  const extend = (x, y) => {
+    if (x < xmin) xmin = x; if (x > xmax) xmax = x;
+    if (y < ymin) ymin = y; if (y > ymax) ymax = y;
+  };
+  for (const stage of STAGES) {
+    for (const [x, y] of tracks[stage].points) extend(x, y);
+    if (tracks[stage].pose) extend(tracks[stage].pose[0], tracks[stage].pose[1]);
+  }
+  for (const [x, y] of experiences.values()) extend(x, y);
+  const empty = xmin === Infinity;
+  $("waiting").style.display = empty ? "" : "none";
+  if (empty) return;
+  const spanX = Math.max(xmax - xmin, MIN_EXTENT_M);
+  const spanY = Math.max(ymax - ymin, MIN_EXTENT_M);
+  const scale = Math.min((width - 2 * MARGIN_PX) / spanX, (height - 2 * MARGIN_PX) / spanY);
+  const midX = (xmin + xmax) / 2, midY = (ymin + ymax) / 2;
+  // Planar frame: x to the right, y (left of the robot) up the screen.
+  const sx = (x) => (width / 2 + (x - midX) * scale).toFixed(1);
+  const sy = (y) => (height / 2 - (y - midY) * scale).toFixed(1);
+
+  drawGrid(width, height, scale, midX, midY);
+  for (const stage of STAGES) {
+    const track = tracks[stage];
+    const points = track.points.slice();
+    if (track.pose) points.push([track.pose[0], track.pose[1]]);
+    const path = $(`track-${stage}`);
+    path.setAttribute("d", points.length ? "M" + points.map(([x, y]) => `${sx(x)},${sy(y)}`).join("L") : "");
+    path.dataset.count = String(points.length);
+  }
+  const dots = [];
+  for (const [x, y] of experiences.values()) dots.push(`M${sx(x)},${sy(y)}h0`);
+  $("experience-dots").setAttribute("d", dots.join(""));
+  $("experience-dots").dataset.count = String(experiences.size);
+  const plain = [], closing = [];
+  for (const [source, target, loop] of links) {
+    const a = experiences.get(source), b = experiences.get(target);
+    if (!a || !b) continue;
+    (loop ? closing : plain).push(`M${sx(a[0])},${sy(a[1])}L${sx(b[0])},${sy(b[1])}`);
+  }
+  $("links").setAttribute("d", plain.join(""));
+  $("loop-links").setAttribute("d", closing.join(""));
+  $("loop-links").dataset.count = String(closing.length);
+  const current = currentExperience === null ? undefined : experiences.get(currentExperience);
+  $("current-experience").setAttribute("cx", current ? sx(current[0]) : "-100");
+  $("current-experience").setAttribute("cy", current ? sy(current[1]) : "-100");
+
+  const poses = [];
+  for (const stage of STAGES) {
+    const pose = tracks[stage].pose;
+    if (!pose) continue;
+    const [x, y, heading] = pose;
+    const cx = Number(sx(x)), cy = Number(sy(y));
+    const corner = (angle, radius) =>
+      `${(cx + radius * Math.cos(angle)).toFixed(1)},${(cy - radius * Math.sin(angle)).toFixed(1)}`;
+    poses.push(`<polygon class="pose ${stage}" points="${corner(heading, 11)} ${corner(heading + 2.5, 7)} ${corner(heading - 2.5, 7)}"></polygon>`);
+  }
+  $("poses").innerHTML = poses.join("");
+}
+
+function drawGrid(width, height, scale, midX, midY) {
+  const step = niceStep(90 / scale);   // metres between grid lines, about 90 px apart
+  const lines = [];
+  const x0 = midX - width / 2 / scale, y0 = midY - height / 2 / scale;
+  for (let x = Math.ceil(x0 / step) * step; x < x0 + width / scale; x += step) {
+    const px = (width / 2 + (x - midX) * scale).toFixed(1);
+    lines.push(`<line x1="${px}" y1="0" x2="${px}" y2="${height}"></line>`);
+  }
+  for (let y = Math.ceil(y0 / step) * step; y < y0 + height / scale; y += step) {
+    const py = (height / 2 - (y - midY) * scale).toFixed(1);
+    lines.push(`<line x1="0" y1="${py}" x2="${width}" y2="${py}"></line>`);
+  }
+  $("grid-lines").innerHTML = lines.join("");
+  const bar = step * scale;
+  const label = step >= 1 ? `${step} m` : `${Math.round(step * 100)} cm`;
+  $("scale-bar").innerHTML =
+    `<line x1="14" y1="${height - 14}" x2="${(14 + bar).toFixed(1)}" y2="${height - 14}"></line>` +
+    `<text x="14" y="${height - 20}">${label}</text>`;
+}
+
+window.addEventListener("resize", () => requestAnimationFrame(draw));
+
+// ------------------------------------------------------------------ the stream
+let source = null;
+function connect() {
+  source = new EventSource("events");
+  source.onopen = () => {
+    $("connection").textContent = "live";
+    $("connection").className = "badge on";
+  };
+  source.onerror = () => {
+    $("connection").textContent = "reconnecting…";
+    $("connection").className = "badge off";
+  };
+  source.onmessage = (event) => applyState(JSON.parse(event.data));
+}
+connect();
