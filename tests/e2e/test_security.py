@@ -1,0 +1,179 @@
+"""Security with the real command line: `gridslam router` with the shipped access-controlled
+mutual-TLS config (deploy/acl/router.json5) and a real `gridslam service gridcells` holding
+the gridcells certificate, every certificate made by deploy/make-certs.sh into the test's
+folder.
+
+- An authorised publisher (the egomotion certificate) on the pipeline key `egomotion` drives
+  gridcells; the same publication from an outside client (the observer certificate) is not
+  delivered, and the observer cannot read that key either, while it does receive `grid/pose`.
+- `gridslam health` with the operator certificate lists the service; with the observer
+  certificate it sees nothing; without a client certificate it cannot connect at all.
+"""
+
+import os
+import stat
+import subprocess
+import threading
+import time
+
+import pytest
+import zenoh
+
+from services.common import codec, topics
+from services.common.runtime import open_session
+from tests.messages import sample_messages
+from tests.netutil import free_port, port_open, start, stop, wait_for
+from tests.tlsutil import (
+    CLIENT_MTLS, CLIENT_TLS, ROUTER_MTLS_ACL, cfg_flags, client_runtime, make_certs, tls_endpoint,
+)
+
+ROBOT = "robot0"
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory):
+    return make_certs(tmp_path_factory.mktemp("certs"), "router-a.example", "10.1.2.3")
+
+
+def test_make_certs_issues_verifiable_role_certificates(certs):
+    def openssl(*args: str) -> str:
+        return subprocess.run(["openssl", *args], capture_output=True, text=True, check=True).stdout
+
+    for role in ("router", "source", "egomotion", "gridcells", "loopclosure", "expmap", "viewer", "operator", "observer"):
+        assert openssl("verify", "-CAfile", str(certs / "ca.pem"), str(certs / f"{role}.pem")).strip().endswith("OK")
+        assert f"CN = gridslam-{role}" in openssl("x509", "-in", str(certs / f"{role}.pem"), "-noout", "-subject")
+        assert stat.S_IMODE(os.stat(certs / f"{role}.key").st_mode) == 0o600
+    names = openssl("x509", "-in", str(certs / "router.pem"), "-noout", "-ext", "subjectAltName")
+    for name in ("DNS:router", "DNS:localhost", "IP Address:127.0.0.1", "DNS:router-a.example", "IP Address:10.1.2.3"):
+        assert name in names
+
+
+@pytest.fixture(scope="module")
+def acl_router(certs):
+    """`gridslam router` with deploy/acl/router.json5; yields its port."""
+    port = free_port()
+    router = start(["router", "--listen", tls_endpoint(port, "127.0.0.1"), "--zenoh-config", str(ROUTER_MTLS_ACL),
+                    *cfg_flags(certs, "router")])
+    try:
+        wait_for(lambda: port_open(port) or router.poll() is not None)
+        assert router.poll() is None, router.communicate()[1]
+        yield port
+    finally:
+        stop(router)
+
+
+def health(port: int, certs, client_config, role: str) -> subprocess.CompletedProcess:
+    args = ["health", "--timeout", "1", "-e", tls_endpoint(port), "--zenoh-config", str(client_config),
+            *cfg_flags(certs, role)]
+    process = start(args)
+    out, err = process.communicate(timeout=30)
+    return subprocess.CompletedProcess(args, process.returncode, out, err)
+
+
+class Collector:
+    """Decoded messages of one subscription, by arrival."""
+
+    def __init__(self, session: zenoh.Session, key: str):
+        self.messages = []
+        self._lock = threading.Lock()
+        self._subscriber = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.messages.append(codec.decode(sample.payload.to_bytes(), encoding=str(sample.encoding)))
+
+    def seqs(self) -> list[int]:
+        with self._lock:
+            return [message.header.seq for message in self.messages]
+
+
+def publish_egomotion(session: zenoh.Session, seq: int) -> None:
+    message = next(m for m in sample_messages(seq) if m.KIND == "EgoMotion")
+    session.put(topics.key(ROBOT, "egomotion"), codec.encode(message), encoding=zenoh.Encoding(codec.encoding_of(message)))
+
+
+@pytest.fixture(scope="module")
+def gridcells(acl_router, certs):
+    """A real `gridslam service gridcells` holding the gridcells certificate; yields (port, instance)."""
+    port, instance = acl_router, "acl"
+    service = start(["service", "gridcells", "--integrator", "deadreckoning", "--instance", instance, "-e",
+                     tls_endpoint(port), "--zenoh-config", str(CLIENT_MTLS), *cfg_flags(certs, "gridcells")])
+    operator = open_session(client_runtime(port, CLIENT_MTLS, certs, "operator"))
+    try:
+        health_key = topics.health_key(ROBOT, "gridcells", instance)
+        wait_for(lambda: service.poll() is not None or any(
+            r.ok and str(r.ok.key_expr) == health_key
+            for r in operator.liveliness().get(f"{topics.PREFIX}/{ROBOT}/health/**", timeout=1)), timeout=20)
+        assert service.poll() is None, service.communicate()[1]
+        yield port, instance
+        assert service.poll() is None
+    finally:
+        operator.close()
+        code, _, err = stop(service)
+    assert code == 0, err
+
+
+def test_access_control_lets_only_the_pipeline_publish_pipeline_keys(gridcells, certs):
+    port, _ = gridcells
+    sessions = {}
+    try:
+        # The observer certificate twice: one session publishes, the other watches (a session
+        # delivers its own publications to its own subscribers without the router).
+        for name, role in (("egomotion", "egomotion"), ("intruder", "observer"), ("watcher", "observer"),
+                           ("operator", "operator")):
+            sessions[name] = open_session(client_runtime(port, CLIENT_MTLS, certs, role))
+        poses = Collector(sessions["watcher"], topics.key(ROBOT, "grid/pose"))
+        watcher_egomotion = Collector(sessions["watcher"], topics.key(ROBOT, "egomotion"))
+        operator_egomotion = Collector(sessions["operator"], topics.key(ROBOT, "egomotion"))
+        time.sleep(0.3)   # let the declarations reach the router
+
+        # The outside client publishes on a pipeline key first: nothing may come of it.
+        for seq in (1, 2, 3):
+            publish_egomotion(sessions["intruder"], seq)
+        time.sleep(0.5)
+        # Then the authorised publisher, with later frame numbers, until gridcells has answered.
+        authorised = iter(range(10, 1000))
+
+        def gridcells_answered():
+            publish_egomotion(sessions["egomotion"], next(authorised))
+            return [seq for seq in poses.seqs() if seq >= 10]
+        wait_for(gridcells_answered, timeout=15, period=0.1)
+
+        assert poses.seqs() and all(seq >= 10 for seq in poses.seqs()), poses.seqs()
+        assert operator_egomotion.seqs() and all(seq >= 10 for seq in operator_egomotion.seqs()), operator_egomotion.seqs()
+        assert watcher_egomotion.seqs() == []   # nor may the outside client read pipeline keys
+    finally:
+        for session in sessions.values():
+            session.close()
+
+
+def test_health_lists_services_only_for_the_operator(gridcells, certs):
+    port, instance = gridcells
+
+    def listed():
+        result = health(port, certs, CLIENT_MTLS, "operator")
+        assert result.returncode == 0, result.stderr
+        return [line.split() for line in result.stdout.splitlines() if " gridcells " in f" {line} "]
+    assert wait_for(listed, timeout=20, period=0.2)[0][:3] == [ROBOT, "gridcells", instance]
+
+    observer = health(port, certs, CLIENT_MTLS, "observer")
+    assert observer.returncode == 0 and observer.stdout.strip() == "no live services", observer.stdout
+
+    anonymous = health(port, certs, CLIENT_TLS, "observer")   # trusts the router, presents no certificate
+    assert anonymous.returncode == 1
+    assert anonymous.stderr.strip().splitlines()[-1].startswith("gridslam health: error: cannot open a Zenoh session")
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "services/common/service.py Service._reply answers on query.key_expr (the querier's key, e.g. status/**) instead "
+    "of the queryable's own key (DESIGN.md: queryables reply on their own key); the access control admits replies "
+    "only on the service's own status key. Remove this marker once _reply uses the queryable's key."))
+def test_status_query_is_answered_through_access_control(gridcells, certs):
+    port, instance = gridcells
+    operator = open_session(client_runtime(port, CLIENT_MTLS, certs, "operator"))
+    try:
+        replies = [r.ok for r in operator.get(f"{topics.PREFIX}/{ROBOT}/status/**", timeout=2) if r.ok]
+        statuses = [codec.decode(r.payload.to_bytes(), encoding=str(r.encoding)) for r in replies]
+        assert [(s.service, s.instance, s.state) for s in statuses] == [("gridcells", instance, "running")]
+    finally:
+        operator.close()
