@@ -49,6 +49,9 @@ def register(subparsers) -> None:
                         help="input format (default: from the extension, then the content)")
     parser.add_argument("--decoder", choices=tuple(DECODERS), default="subpixel", help="how the lattice flow is read (default subpixel)")
     parser.add_argument("--n-frames", type=int, metavar="N", help="only the first N rows")
+    parser.add_argument("--network-rotation", type=float, default=0.0, metavar="DEG",
+                        help="turn the world frame the network runs in by DEG (results are turned back): shows how much a "
+                             "result owes to the route's alignment with the lattice directions")
     add_network_flags(parser)
     parser.set_defaults(func=run)
 
@@ -58,7 +61,8 @@ def run(args) -> int:
 
     result = integrate(
         args.input, fmt=args.fmt, decoder=args.decoder, velocity_scale=args.velocity_scale, n_frames=args.n_frames,
-        noise_trans=args.noise_trans, noise_rot_deg=args.noise_rot, seed=args.seed, out=args.out,
+        noise_trans=args.noise_trans, noise_rot_deg=args.noise_rot, seed=args.seed,
+        network_rotation_deg=args.network_rotation, out=args.out,
     )
     print(format_table(integration_table(result)))
     print(f"results: {result.out_dir}")

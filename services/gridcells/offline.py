@@ -198,6 +198,7 @@ def integrate(
     noise_trans: float = 0.0,
     noise_rot_deg: float = 0.0,
     seed: int = 0,
+    network_rotation_deg: float = 0.0,
     params: NetworkParams = NetworkParams(),
     out: Path | None = None,
     results_root: Path = Path("results"),
@@ -205,11 +206,18 @@ def integrate(
 ) -> IntegrationResult:
     """Load a motion file, integrate it with the grid cells and with dead reckoning, score
     both (against the ground truth when the input is a trajectory), and write the results
-    folder (`out`, or a new results/<timestamp>/) unless `write` is False."""
+    folder (`out`, or a new results/<timestamp>/) unless `write` is False.
+
+    `network_rotation_deg` turns the world frame the network runs in (results are turned
+    back): the integer decoders snap the direction of travel to lattice directions, which
+    favours routes aligned with them; turning the frame shows how much of a result is that."""
     if decoder not in DECODERS:
         raise ConfigError(f"unknown decoder '{decoder}': choose one of {', '.join(DECODERS)}")
+    if not math.isfinite(network_rotation_deg):
+        raise ConfigError(f"network rotation {network_rotation_deg}: must be a finite number of degrees")
     motion = load_motion(path, fmt).head(n_frames)
     motion = add_noise(motion, noise_trans, noise_rot_deg, seed)
+    motion = replace(motion, network_rotation=motion.network_rotation + math.radians(network_rotation_deg))
     scale = resolve_velocity_scale(motion, velocity_scale, params)
     log.info("integrating %s with the %s decoder, velocity scale %.4g network units per metre", motion.describe(), decoder, scale)
     grid = run_grid(motion, decoder, scale, params)
@@ -225,6 +233,7 @@ def integrate(
             "noise_trans": noise_trans,
             "noise_rot_deg": noise_rot_deg,
             "seed": seed,
+            "network_rotation_deg": math.degrees(motion.network_rotation),
         },
         "decoder": decoder,
         "velocity_scale": scale,
@@ -243,7 +252,7 @@ def integrate(
     files = write_integration(folder, result, config={
         "input": str(motion.path), "format": fmt, "decoder": decoder, "velocity_scale": velocity_scale,
         "resolved_velocity_scale": scale, "n_frames": n_frames, "noise_trans": noise_trans,
-        "noise_rot_deg": noise_rot_deg, "seed": seed, "network": params,
+        "noise_rot_deg": noise_rot_deg, "seed": seed, "network_rotation_deg": network_rotation_deg, "network": params,
     })
     return replace(result, out_dir=folder, files=files)
 
