@@ -58,8 +58,8 @@ class ViewerService(Service):
     def __init__(self, runtime: RuntimeConfig, config: ViewerConfig, instance: str | None = None):
         super().__init__(runtime, instance)
         self.config = config
-        self.state = ViewerState(config.params())
-        self.lock = threading.Lock()            # guards self.state (main thread, Zenoh and HTTP threads)
+        self.viewer_state = ViewerState(config.params())
+        self.lock = threading.Lock()            # guards self.viewer_state (main thread, Zenoh and HTTP threads)
         self.http_stop = threading.Event()
         self.stream_slots = threading.BoundedSemaphore(config.max_clients)
         self.static = _read_static()
@@ -102,11 +102,11 @@ class ViewerService(Service):
         self.subscribe("egomotion", self.on_egomotion, drop_stale=False)
         self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
         self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
-        self.subscribe("map/update", self.on_map_update, drop_stale=False)
-        self.subscribe("loop/closure", self.on_loop_closure, drop_stale=False)
-        self.subscribe("camera/frame", self.on_camera_frame, newest_only=True, drop_stale=False)
-        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
-        self.subscribe("view/template", self.on_view_template, newest_only=True, drop_stale=False)
+        self._subscribe_sparse("map/update", self.on_map_update)
+        self._subscribe_sparse("loop/closure", self.on_loop_closure)
+        self._subscribe_sparse("camera/frame", self.on_camera_frame, newest_only=True)
+        self._subscribe_sparse("grid/activity", self.on_grid_activity, newest_only=True)
+        self._subscribe_sparse("view/template", self.on_view_template, newest_only=True)
         # Status messages of many services share one wildcard and carry no frame sequence of their
         # own, so they bypass the base's per-topic seq check; they are small and once a second.
         self._own_entities += [
@@ -115,6 +115,13 @@ class ViewerService(Service):
                                                          history=True),
         ]
         self._query_snapshot_if_due()
+
+    def _subscribe_sparse(self, topic: str, handler, newest_only: bool = False) -> None:
+        """A topic published only when something happens or every few frames (map/update,
+        loop/closure, grid/activity), or taken newest-only here: a jump in its seq is by design,
+        so it is neither counted nor logged as a gap."""
+        self.subscribe(topic, handler, newest_only=newest_only, drop_stale=False)
+        self._subscriptions[-1].seq = _AnySeq()   # the base offers no switch for this (yet)
 
     def teardown(self) -> None:
         for entity in self._own_entities:
@@ -128,24 +135,24 @@ class ViewerService(Service):
     def on_egomotion(self, message: EgoMotion) -> None:
         increment = message.increment
         with self.lock:
-            self.state.on_egomotion(message.header.seq, increment.forward, increment.left, increment.yaw, time.monotonic())
+            self.viewer_state.on_egomotion(message.header.seq, increment.forward, increment.left, increment.yaw, time.monotonic())
 
     def on_grid_pose(self, message: GridPose) -> None:
         position = message.pose.position
         with self.lock:
-            self.state.on_grid_pose(message.header.seq, position.x, position.y, message.heading, message.lattice_shift,
+            self.viewer_state.on_grid_pose(message.header.seq, position.x, position.y, message.heading, message.lattice_shift,
                                     message.step_length, message.saturated, message.integrator, time.monotonic())
 
     def on_map_pose(self, message: MapPose) -> None:
         position = message.pose.position
         with self.lock:
-            self.state.on_map_pose(message.header.seq, position.x, position.y, message.heading, message.experience_id,
+            self.viewer_state.on_map_pose(message.header.seq, position.x, position.y, message.heading, message.experience_id,
                                    time.monotonic())
 
     def on_map_update(self, message: MapUpdate) -> None:
         experiences, links = _map_items(message)
         with self.lock:
-            missing = self.state.on_map_update(message.header.seq, experiences, links, message.experience_count,
+            missing = self.viewer_state.on_map_update(message.header.seq, experiences, links, message.experience_count,
                                                message.link_count)
         if missing:
             self._snapshot_wanted = True
@@ -153,24 +160,24 @@ class ViewerService(Service):
 
     def on_loop_closure(self, message: LoopClosure) -> None:
         with self.lock:
-            self.state.on_loop_closure(message.frame, message.matched_frame, message.matched_template, message.votes)
+            self.viewer_state.on_loop_closure(message.frame, message.matched_frame, message.matched_template, message.votes)
 
     def on_camera_frame(self, message: CameraFrame) -> None:
         image = display_image(image_from_msg(message.left), message.left.encoding, self.config.camera_width)
         ground_truth = None if message.ground_truth is None else pose_to_matrix(message.ground_truth)
         with self.lock:
-            self.state.on_camera_frame(message.header.seq, image, ground_truth, time.monotonic())
+            self.viewer_state.on_camera_frame(message.header.seq, image, ground_truth, time.monotonic())
 
     def on_grid_activity(self, message: GridActivity) -> None:
         image = display_image(image_from_msg(message.image), message.image.encoding, 512)
         if image.ndim == 3:
             image = image.mean(axis=2).astype(image.dtype)
         with self.lock:
-            self.state.on_grid_activity(message.header.seq, image, message.lattice_shift, message.neurons, message.max_rate)
+            self.viewer_state.on_grid_activity(message.header.seq, image, message.lattice_shift, message.neurons, message.max_rate)
 
     def on_view_template(self, message: ViewTemplate) -> None:
         with self.lock:
-            self.state.on_view_template(message.header.seq, message.template_id, message.is_new, message.distance,
+            self.viewer_state.on_view_template(message.header.seq, message.template_id, message.is_new, message.distance,
                                         message.matched_frame, message.template_count)
 
     # ----------------------------------------------------------------- Zenoh threads
@@ -183,8 +190,9 @@ class ViewerService(Service):
             return
         counters = status.model_dump(include={"state", "received", "published", "decode_errors", "gaps", "stale", "uptime"})
         counters["uptime"] = round(counters["uptime"], 1)
+        counters["extra"] = {name: round(value, 3) for name, value in getattr(status, "extra", {}).items()}
         with self.lock:
-            self.state.on_status(status.service, status.instance, counters, time.monotonic())
+            self.viewer_state.on_status(status.service, status.instance, counters, time.monotonic())
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         try:
@@ -193,7 +201,7 @@ class ViewerService(Service):
             return
         alive = sample.kind == zenoh.SampleKind.PUT
         with self.lock:
-            self.state.on_liveliness(service, instance, alive)
+            self.viewer_state.on_liveliness(service, instance, alive)
         if alive and service == "expmap":   # a (re)started map: fetch what it holds
             self._snapshot_wanted = True
 
@@ -215,24 +223,24 @@ class ViewerService(Service):
             return
         experiences, links = _map_items(snapshot)
         with self.lock:
-            self.state.on_map_snapshot(snapshot.header.seq, experiences, links)
+            self.viewer_state.on_map_snapshot(snapshot.header.seq, experiences, links)
 
     # ----------------------------------------------------------------- HTTP threads
     def view(self, cursor: Cursor | None = None, include_map: bool = True, include_images: bool = True) -> dict:
         with self.lock:
-            state = self.state.view(time.monotonic(), cursor, include_map=include_map, include_images=include_images)
+            state = self.viewer_state.view(time.monotonic(), cursor, include_map=include_map, include_images=include_images)
         state["robot"] = self.robot
         state["connected"] = self.session is not None
         return state
 
     def revision(self) -> int:
-        return self.state.revision   # an int read: no lock needed
+        return self.viewer_state.revision   # an int read: no lock needed
 
     def image(self, which: str) -> bytes | None:
         """The newest camera (JPEG) or lattice (PNG) image, encoded once per revision."""
         with self.lock:
-            pixels, revision = ((self.state.camera, self.state.camera_revision) if which == "camera"
-                                else (self.state.lattice, self.state.lattice_revision))
+            pixels, revision = ((self.viewer_state.camera, self.viewer_state.camera_revision) if which == "camera"
+                                else (self.viewer_state.lattice, self.viewer_state.lattice_revision))
         if pixels is None:
             return None
         cached = self._image_cache.get(which)
@@ -242,6 +250,14 @@ class ViewerService(Service):
         data = encode_camera_jpeg(pixels) if which == "camera" else encode_lattice_png(pixels)
         self._image_cache[which] = (revision, data)
         return data
+
+
+class _AnySeq:
+    """A seq tracker that accepts every seq: no gaps, nothing stale."""
+
+    @staticmethod
+    def check(seq: int) -> tuple[int, bool]:
+        return 0, False
 
 
 def _map_items(message: MapUpdate | MapSnapshot) -> tuple[list[tuple[int, float, float]], list[tuple[int, int, bool]]]:

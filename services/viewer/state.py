@@ -249,7 +249,8 @@ class ViewerState:
         self.revision += 1
 
     def on_status(self, service: str, instance: str, counters: dict, now: float) -> None:
-        """A ServiceStatus: `counters` has state, received, published, decode_errors, gaps, stale, uptime."""
+        """A ServiceStatus: `counters` has state, received, published, decode_errors, gaps, stale,
+        uptime and optionally `extra` (service-specific counters)."""
         row = self._service(service, instance)
         row.status, row.status_time = dict(counters), now
         self.revision += 1
@@ -327,7 +328,8 @@ class ViewerState:
     def service_rows(self, now: float) -> list[dict]:
         rows = []
         for (service, instance), row in sorted(self.services.items()):
-            silent = row.status_time is None or now - row.status_time > self.params.silent_after_s
+            # A token without status messages (the router) is not silent; one whose status stopped is.
+            silent = row.status_time is not None and now - row.status_time > self.params.silent_after_s
             rows.append({"service": service, "instance": instance, "alive": row.alive, "silent": silent,
                          **(row.status or {})})
         return rows

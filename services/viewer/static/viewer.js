@@ -153,7 +153,11 @@ function showServices(rows) {
   const cell = (value) => `<td>${value === undefined || value === null ? "–" : value}</td>`;
   const html = rows.map((row) => {
     const kind = !row.alive ? "dead" : row.silent ? "silent" : "";
-    return `<tr class="${kind}" title="${row.alive ? "" : "no liveliness token"}${row.silent ? " no recent status" : ""}">` +
+    const notes = [];
+    if (!row.alive) notes.push("no liveliness token");
+    if (row.silent) notes.push("no recent status");
+    for (const [name, value] of Object.entries(row.extra || {})) notes.push(`${name}=${value}`);
+    return `<tr class="${kind}" title="${notes.join(" · ")}">` +
       `<td><span class="dot"></span></td>${cell(row.service)}${cell(row.instance)}${cell(row.state)}` +
       `${cell(row.received)}${cell(row.published)}${cell(row.decode_errors)}${cell(row.gaps)}${cell(row.stale)}${cell(row.uptime)}</tr>`;
   }).join("");
