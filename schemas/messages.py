@@ -159,6 +159,9 @@ class ServiceStatus(Message):
     gaps: int = Field(ge=0, description="Frames missing between consecutive received seq numbers.")
     stale: int = Field(ge=0, description="Messages dropped because their seq was not newer than the last one (duplicates, out of order).")
     uptime: float = Field(ge=0.0, description="Seconds since the service started.")
+    extra: dict[str, float] = Field(
+        default_factory=dict,
+        description="Service-specific counters, e.g. frames_dropped (live camera), templates, experiences, restarts.")
 
     @field_validator("service", "instance")
     @classmethod

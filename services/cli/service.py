@@ -1,28 +1,41 @@
-"""`gridslam service NAME`: run one service as this process."""
+"""`gridslam service NAME [flags]`: run one service as this process."""
 
 from __future__ import annotations
 
+import argparse
 import importlib
 
 from services.common.runtime import add_runtime_flags, runtime_from_args
 
 # Service name → adapter module; each exposes add_arguments(parser) and main(runtime, args) -> int.
+# Modules are imported only for the service being started, which keeps `gridslam` itself light.
 SERVICES: dict[str, str] = {
+    "source": "services.source.service",
+    "egomotion": "services.egomotion.service",
     "gridcells": "services.gridcells.service",
+    "viewer": "services.viewer.service",
 }
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("service", help="run one service (source, egomotion, gridcells, ...)")
-    names = parser.add_subparsers(dest="service", metavar="NAME", required=True)
-    for name, module_name in SERVICES.items():
-        module = importlib.import_module(module_name)
-        service_parser = names.add_parser(name, help=module.__doc__.strip().splitlines()[0])
-        add_runtime_flags(service_parser)
-        service_parser.add_argument("--instance", help="instance name in the health key (default host-pid)")
-        module.add_arguments(service_parser)
-        service_parser.set_defaults(func=run, service_main=module.main)
+    parser = subparsers.add_parser("service", help="run one service (source, egomotion, gridcells, ...)",
+                                   description="Run one service; `gridslam service NAME --help` lists its flags.")
+    parser.add_argument("name", choices=list(SERVICES), metavar="NAME", help=", ".join(SERVICES))
+    parser.add_argument("service_args", nargs=argparse.REMAINDER, help="flags of that service")
+    parser.set_defaults(func=run)
+
+
+def service_parser(name: str):
+    """The parser of one service's flags: the shared runtime flags plus its own; and its main()."""
+    module = importlib.import_module(SERVICES[name])
+    parser = argparse.ArgumentParser(prog=f"gridslam service {name}", description=module.__doc__.strip().splitlines()[0])
+    add_runtime_flags(parser)
+    parser.add_argument("--instance", help="instance name in the health key (default host-pid)")
+    module.add_arguments(parser)
+    return parser, module.main
 
 
 def run(args) -> int:
-    return args.service_main(runtime_from_args(args), args)
+    parser, service_main = service_parser(args.name)
+    service_args = parser.parse_args(args.service_args)
+    return service_main(runtime_from_args(service_args), service_args)

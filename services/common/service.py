@@ -115,7 +115,7 @@ class Service:
         dropped by design and counted); otherwise every sample is handled, in order, and a full
         inbox blocks Zenoh's delivery, which pushes back on BLOCK publishers."""
         assert self.session is not None, "subscribe() belongs in setup()"
-        subscription = Subscription(topic, topics.TOPICS[topic], handler, newest_only, drop_stale)
+        subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale)
         index = len(self._subscriptions)
         self._subscriptions.append(subscription)
 
@@ -136,8 +136,8 @@ class Service:
     def queryable(self, topic: str, answer: Callable[[], Message]) -> None:
         """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only)."""
         assert self.session is not None, "queryable() belongs in setup()"
-        self._entities.append(self.session.declare_queryable(
-            topics.key(self.robot, topic), lambda query: self._reply(query, answer)))
+        key = topics.key(self.robot, topic)
+        self._entities.append(self.session.declare_queryable(key, lambda query: self._reply(query, key, answer)))
 
     def publish(self, topic: str, message: Message) -> None:
         """Publish a pipeline message on `topic` (congestion control BLOCK: offline replay loses nothing)."""
@@ -145,13 +145,17 @@ class Service:
         self.counters.published += 1
 
     def _send(self, topic: str, message: Message) -> None:
+        self.publisher(topic).put(codec.encode(message))
+
+    def publisher(self, topic: str) -> zenoh.Publisher:
+        """The publisher of `topic`, declared on first use."""
         publisher = self._publishers.get(topic)
         if publisher is None:
             publisher = self._publishers[topic] = self.session.declare_publisher(
-                topics.key(self.robot, topic), encoding=zenoh.Encoding(codec.encoding_of(message)),
+                topics.key(self.robot, topic), encoding=zenoh.Encoding(codec.encoding_of(topics.model_of(topic))),
                 congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE,
             )
-        publisher.put(codec.encode(message))
+        return publisher
 
     def header(self, seq: int, stamp: Time | float, frame_id: str = "") -> Header:
         stamp = stamp if isinstance(stamp, Time) else Time.from_seconds(stamp)
@@ -195,8 +199,12 @@ class Service:
         return ServiceStatus(
             header=self.header(self.last_seq, time.time()), service=self.name, instance=self.instance,
             state=self.state, received=c.received, published=c.published, decode_errors=c.decode_errors,
-            gaps=c.gaps, stale=c.stale, uptime=time.monotonic() - self.started,
+            gaps=c.gaps, stale=c.stale, uptime=time.monotonic() - self.started, extra=self.extra_counters(),
         )
+
+    def extra_counters(self) -> dict[str, float]:
+        """Service-specific counters for the status message (override to add some)."""
+        return {"dropped_newest_only": self.counters.dropped_newest_only} if self.counters.dropped_newest_only else {}
 
     def _serve_once(self) -> None:
         try:
@@ -240,10 +248,12 @@ class Service:
             except queue.Full:
                 continue
 
-    def _reply(self, query: zenoh.Query, answer: Callable[[], Message]) -> None:
+    def _reply(self, query: zenoh.Query, key: str, answer: Callable[[], Message]) -> None:
+        # Reply on our own key, not the query's (which may hold wildcards): replies on one key
+        # would be consolidated into one.
         try:
             message = answer()
-            query.reply(query.key_expr, codec.encode(message), encoding=zenoh.Encoding(codec.encoding_of(message)))
+            query.reply(key, codec.encode(message), encoding=zenoh.Encoding(codec.encoding_of(message)))
         except Exception:  # a failing answer must not kill Zenoh's thread; the querier times out
             log.exception("%s: query on %s failed", self.name, query.key_expr)
 

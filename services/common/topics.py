@@ -25,6 +25,11 @@ TOPICS: dict[str, type[Message]] = {
 }
 
 
+def model_of(topic: str) -> type[Message]:
+    """The message model carried by `topic` (status/<service>/<instance> carries ServiceStatus)."""
+    return ServiceStatus if topic.startswith("status/") else TOPICS[topic]
+
+
 def key(robot: str, topic: str) -> str:
     """Key expression of `topic` for `robot`, e.g. key('robot0', 'grid/pose')."""
     return f"{PREFIX}/{robot}/{topic}"

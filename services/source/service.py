@@ -1,0 +1,168 @@
+"""source: publish camera frames from a dataset, a video, a live camera or the synthetic world.
+
+Offline replay loses nothing: pipeline topics use congestion control BLOCK, and the source keeps
+at most `window` frames in flight, counting a frame done when its `ack_topic` message (by
+default `map/pose`, the last stage) arrives. A live camera keeps only the newest frame instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import time
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas import CameraFrame, CameraInfo, PlanarIncrement
+from schemas.base import Message
+from services.common.config import load_config
+from services.common.convert import image_to_msg, matrix_to_pose
+from services.common.runtime import RuntimeConfig
+from services.common.service import Service
+from services.common.topics import TOPICS
+from services.source.frames import Frame, FrameSource
+from services.source.spec import open_source
+
+log = logging.getLogger(__name__)
+
+WAIT_LOG_PERIOD_S = 10.0   # how often a source stalled on its window says so
+
+
+class SourceConfig(BaseModel):
+    """Configuration of the source service (table `[source]`, env `GRIDSLAM_SOURCE_*`)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    source: str = Field(description="What to read: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
+    preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic.")
+    calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
+    mono: bool = Field(False, description="Publish only the left image of a stereo source.")
+    start: int = Field(0, ge=0, description="First frame index.")
+    stop: int | None = Field(None, ge=0, description="Frame index to stop before (default: the end).")
+    step: int = Field(1, ge=1, description="Take every step-th frame.")
+    rate: float = Field(0.0, ge=0.0, description="Frames per second to publish at; 0: as fast as the window allows.")
+    window: int = Field(8, ge=0, description="Frames in flight awaiting ack_topic before the source waits; 0: no flow control.")
+    ack_topic: str = Field("map/pose", description="Topic whose messages mark a frame as processed by the pipeline.")
+    exit_at_end: bool = Field(True, description="Exit once the last frame is acknowledged (or sent, without flow control).")
+
+
+def frame_message(frame: Frame, header) -> CameraFrame:
+    """The wire message of one source frame."""
+    camera = frame.camera
+    return CameraFrame(
+        header=header,
+        left=image_to_msg(frame.left),
+        right=image_to_msg(frame.right) if frame.right is not None else None,
+        camera_info=CameraInfo(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, baseline=camera.baseline)
+        if camera is not None else None,
+        ground_truth=matrix_to_pose(frame.ground_truth) if frame.ground_truth is not None else None,
+        odometry=PlanarIncrement(forward=frame.odometry[0], left=frame.odometry[1], yaw=frame.odometry[2])
+        if frame.odometry is not None else None,
+    )
+
+
+class SourceService(Service):
+    name = "source"
+    idle_timeout = 0.0
+
+    def __init__(self, runtime: RuntimeConfig, config: SourceConfig, frames: FrameSource, instance: str | None = None):
+        super().__init__(runtime, instance)
+        self.config = config
+        self.frames = frames
+        self.live = bool(getattr(frames, "live", False))
+        self.window = 0 if self.live else config.window
+        self.iterator = iter(frames)
+        self.in_flight: collections.deque[int] = collections.deque()
+        self.sent = 0
+        self.finished = False
+        self.next_due = 0.0
+        self.waiting_since: float | None = None
+
+    def setup(self) -> None:
+        if self.window:
+            if self.config.ack_topic not in TOPICS:
+                raise ValueError(f"ack_topic {self.config.ack_topic!r} is not a pipeline topic")
+            self.subscribe(self.config.ack_topic, self.on_ack, drop_stale=False)
+
+    def on_ack(self, message: Message) -> None:
+        seq = message.header.seq
+        while self.in_flight and self.in_flight[0] <= seq:
+            self.in_flight.popleft()
+
+    def on_idle(self) -> None:
+        if self.finished:
+            if not self.in_flight or not self.window:
+                if self.config.exit_at_end:
+                    log.info("source: all %d frames sent%s", self.sent, " and acknowledged" if self.window else "")
+                    self.stop()
+            self._pause()
+            return
+        if self.window and len(self.in_flight) >= self.window:
+            self._note_waiting()
+            self._pause()
+            return
+        self.waiting_since = None
+        if self.config.rate > 0:
+            delay = self.next_due - time.monotonic()
+            if delay > 0:
+                self._pause(min(delay, 0.05))
+                return
+            self.next_due = max(self.next_due, time.monotonic() - 1.0) + 1.0 / self.config.rate
+        if self.sent == 0 and not self._subscribers_ready():
+            self._pause(0.05)
+            return
+        frame = next(self.iterator, None)
+        if frame is None:
+            self.finished = True
+            return
+        self.publish("camera/frame", frame_message(frame, self.header(frame.seq, frame.stamp, "camera")))
+        self.last_seq = frame.seq
+        self.sent += 1
+        if self.window:
+            self.in_flight.append(frame.seq)
+
+    def extra_counters(self) -> dict[str, float]:
+        extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight)}
+        if self.live:
+            extra["frames_dropped"] = getattr(self.frames, "frames_dropped", 0)
+        return {**super().extra_counters(), **extra}
+
+    def _subscribers_ready(self) -> bool:
+        """Hold the first frame until someone subscribes to camera/frame (none is lost at start)."""
+        return self.publisher("camera/frame").matching_status.matching
+
+    def _pause(self, seconds: float = 0.002) -> None:
+        self._stop.wait(seconds)
+
+    def _note_waiting(self) -> None:
+        now = time.monotonic()
+        if self.waiting_since is None:
+            self.waiting_since = now
+        elif now - self.waiting_since >= WAIT_LOG_PERIOD_S:
+            log.warning("source: waited %.0f s for %s of frame %d", now - self.waiting_since, self.config.ack_topic,
+                        self.in_flight[0])
+            self.waiting_since = now
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+    parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic")
+    parser.add_argument("--calibration", type=Path, help="calibration TOML file")
+    parser.add_argument("--mono", action="store_true", default=None, help="publish only the left image")
+    parser.add_argument("--start", type=int, help="first frame index")
+    parser.add_argument("--stop", type=int, help="frame index to stop before")
+    parser.add_argument("--step", type=int, help="take every step-th frame")
+    parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
+    parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control)")
+    parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
+
+
+def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
+    fields = ("source", "preset", "calibration", "mono", "start", "stop", "step", "rate", "window", "ack_topic")
+    config = load_config(SourceConfig, "source", config_file=args.config,
+                         overrides={name: getattr(args, name) for name in fields})
+    frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
+                         calibration=config.calibration, mono=config.mono)
+    return SourceService(runtime, config, frames, args.instance).run()
