@@ -41,8 +41,8 @@ LOWPASS_SIGMA = 0.06
 _REFINE_RADIUS = 0.34
 _NEWTON_STEPS = 4
 # decode_paper: power iterations for all shifts, then for the shifts still in the running.
-_PAPER_ITERATIONS = 6
-_PAPER_REFINE_ITERATIONS = 24
+_PAPER_ITERATIONS = 2
+_PAPER_REFINE_ITERATIONS = 12
 _NORM_MAX_ITERATIONS = 300
 
 
@@ -231,7 +231,7 @@ def decode_paper(prev_field, field, search: int = 9) -> tuple[float, float]:
 
     # Rounding in the bounds (matrix products: ~n ulps of the fields' norms) must not drop
     # the true minimum: a relative and an absolute margin.
-    slack = 1e-12 * (np.linalg.norm(prev_field) + np.linalg.norm(field))
+    slack = 1e-12 * (np.sqrt(np.einsum("ij,ij->", prev_field, prev_field)) + np.sqrt(np.einsum("ij,ij->", field, field)))
 
     def beaten(index: int, ceiling: float) -> bool:
         return norms.bounds[index] > ceiling * (1 + 1e-9) + slack
