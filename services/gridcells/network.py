@@ -135,7 +135,8 @@ def settled_state(params: NetworkParams = NetworkParams()) -> tuple[np.ndarray, 
     lattice it holds is not periodic on the torus (its strongest wavevectors, in (row,
     column) cycles per sheet, are (5, 0) and (3, 4), with (0, 4) and (4, 0) close behind).
     Under the periodic frame dynamics it re-forms into a hexagonal torus lattice ((3, 4),
-    (5, −1), (2, −5): periods 25.6, 25.1 and 23.8 neurons, 57–64° apart) over about 30 frames. At zero velocity that re-forming moves the lattice by 0.07 neurons in the first
+    (5, −1), (2, −5): periods 25.6, 25.1 and 23.8 neurons, 57–64° apart) over about 30
+    frames. At zero velocity that re-forming moves the lattice by 0.07 neurons in the first
     frame and by less than 0.02 neurons per frame after (measured with decode_subpixel), so it
     does not disturb the decoded flow.
     """
@@ -216,7 +217,6 @@ class GridNetwork:
                 sub_kernels[e, d] = np.roll(periodic[d], (di - ei, dj - ej), axis=(0, 1))[::2, ::2]
         complex_dtype = np.result_type(self.dtype, np.complex64)
         self._kernel_spectra = scipy.fft.rfft2(sub_kernels).astype(complex_dtype)
-        self._rate = self.dtype.type(params.dt / params.tau)
         self._decay = self.dtype.type(1.0 - params.dt / params.tau)
         self._drive = self.dtype.type(params.dt / params.tau * params.gain)
         self._clip = self.dtype.type(params.clip)
