@@ -1,0 +1,88 @@
+"""`gridslam run`: the whole stack on any source, as separate local processes over Zenoh."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from services.common.config import load_config
+from services.common.runtime import DEFAULT_ROUTER
+
+
+def add_run_arguments(parser, *, source_required: bool) -> None:
+    parser.add_argument("--source", required=source_required,
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+    parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
+    parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
+    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--preset", help="dataset preset: synthetic, nubot, kitti, stlucia")
+    parser.add_argument("-c", "--config", type=Path, help="gridslam TOML config file for every service")
+    parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
+    parser.add_argument("--n-frames", type=int, help="process only this many frames")
+    parser.add_argument("--start", type=int, help="first frame index")
+    parser.add_argument("--step", type=int, help="take every step-th frame")
+    parser.add_argument("-l", "--listen", help=f"the run's router endpoint (default {DEFAULT_ROUTER})")
+    parser.add_argument("--robot", help="robot name (default robot0)")
+    parser.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
+                        help="skip loop closure and the experience map")
+    parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
+                        help="also serve the live viewer (default 127.0.0.1:8080)")
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("run", help="run the whole stack on a dataset, camera or the synthetic world")
+    add_run_arguments(parser, source_required=True)
+    parser.set_defaults(func=run)
+
+
+class Progress:
+    """A progress line in frames with the rate: redrawn in place on a terminal, every 10 % otherwise."""
+
+    def __init__(self, stream=sys.stderr):
+        self.stream = stream
+        self.started = time.monotonic()
+        self.shown = -1
+
+    def __call__(self, done: int, total: int | None) -> None:
+        rate = done / max(time.monotonic() - self.started, 1e-9)
+        if total:
+            filled = int(30 * done / total)
+            line = f"[{'#' * filled}{'.' * (30 - filled)}] {done}/{total} frames {rate:5.1f} frames/s"
+            tenth = 10 * done // total
+        else:
+            line, tenth = f"{done} frames {rate:5.1f} frames/s", done // 100
+        if self.stream.isatty():
+            self.stream.write("\r" + line)
+            self.stream.flush()
+        elif tenth != self.shown:
+            self.shown = tenth
+            print(line, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.stream.isatty():
+            self.stream.write("\n")
+
+
+def execute(args, **defaults) -> int:
+    """Build the RunConfig from defaults < config file [run] < flags, run it, print the summary."""
+    from services.evaluation.results import format_table
+    from services.pipeline.report import summary_rows
+    from services.pipeline.runner import RunConfig, run_pipeline
+
+    flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
+             "preset": args.preset, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
+             "step": args.step, "listen": args.listen, "robot": args.robot, "mapping": args.mapping, "view": args.view}
+    config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
+    progress = Progress()
+    try:
+        result = run_pipeline(config, args.out, progress=progress)
+    finally:
+        progress.close()
+    print(format_table(summary_rows(result.metrics)))
+    print(f"results: {result.folder}")
+    return 0
+
+
+def run(args) -> int:
+    return execute(args)

@@ -1,0 +1,132 @@
+"""Records what a running pipeline publishes, from the outside, like any client would: poses of
+every stage, view templates, loop closures, lattice snapshots, and the arrival time of each
+frame's message on each topic (for per-stage latency)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from services.common import codec, topics
+from services.common.convert import heading_of, image_from_msg, pose_to_matrix
+from services.common.runtime import RuntimeConfig, open_session
+
+log = logging.getLogger(__name__)
+
+RECORDED_TOPICS = ("camera/frame", "egomotion", "grid/pose", "grid/activity", "view/template", "loop/closure", "map/pose")
+
+
+@dataclass
+class Recording:
+    """Everything recorded, keyed by frame seq. Arrival times are this host's monotonic clock."""
+
+    stamps: dict[int, float] = field(default_factory=dict)
+    ground_truth: dict[int, np.ndarray] = field(default_factory=dict)
+    increments: dict[int, tuple[float, float, float]] = field(default_factory=dict)
+    grid_poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)
+    map_poses: dict[int, tuple[float, float, float, int]] = field(default_factory=dict)
+    templates: dict[int, tuple[int, bool]] = field(default_factory=dict)
+    closures: list[tuple[int, int, int, int]] = field(default_factory=list)
+    lattices: dict[int, np.ndarray] = field(default_factory=dict)
+    arrivals: dict[str, dict[int, float]] = field(default_factory=lambda: defaultdict(dict))
+    decode_errors: int = 0
+
+
+class Recorder:
+    """Subscribes to every pipeline topic of one robot and fills a Recording."""
+
+    def __init__(self, runtime: RuntimeConfig):
+        self.runtime = runtime
+        self.recording = Recording()
+        self.lock = threading.Lock()
+        self.session: zenoh.Session | None = None
+        self._subscribers = []
+
+    def __enter__(self) -> Recorder:
+        self.session = open_session(self.runtime)
+        for topic in RECORDED_TOPICS:
+            self._subscribers.append(self.session.declare_subscriber(
+                topics.key(self.runtime.robot, topic), lambda sample, topic=topic: self._on_sample(topic, sample)))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
+        self._subscribers.clear()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def count(self, topic: str) -> int:
+        with self.lock:
+            return len(self.recording.arrivals[topic])
+
+    def last_seq(self, topic: str) -> int | None:
+        with self.lock:
+            seqs = self.recording.arrivals[topic]
+            return max(seqs) if seqs else None
+
+    def live_services(self) -> set[str]:
+        """Names of the services of this robot whose health token is alive."""
+        live = set()
+        for reply in self.session.liveliness().get(f"{topics.PREFIX}/{self.runtime.robot}/health/**", timeout=2):
+            if reply.ok is not None:
+                live.add(topics.parse_health_key(str(reply.ok.key_expr))[1])
+        return live
+
+    def statuses(self) -> dict[str, dict]:
+        """The status counters of every live service of this robot, by service name."""
+        found: dict[str, dict] = {}
+        for reply in self.session.get(f"{topics.PREFIX}/{self.runtime.robot}/status/**", timeout=3):
+            if reply.ok is None:
+                continue
+            try:
+                status = codec.decode(reply.ok.payload.to_bytes(), encoding=str(reply.ok.encoding))
+            except codec.CodecError:
+                continue
+            found[status.service] = status.model_dump(exclude={"header", "schema_version"})
+        return found
+
+    def map_snapshot(self):
+        """The expmap service's whole map (MapSnapshot), or None when nobody answers."""
+        for reply in self.session.get(topics.key(self.runtime.robot, "map/snapshot"), timeout=5):
+            if reply.ok is not None:
+                return codec.decode(reply.ok.payload.to_bytes(), encoding=str(reply.ok.encoding))
+        return None
+
+    def _on_sample(self, topic: str, sample: zenoh.Sample) -> None:
+        arrival = time.monotonic()
+        try:
+            message = codec.decode(sample.payload.to_bytes(), topics.model_of(topic), str(sample.encoding))
+        except codec.CodecError as error:
+            with self.lock:
+                self.recording.decode_errors += 1
+            log.warning("recorder: dropped message on %s: %s", sample.key_expr, error)
+            return
+        seq = message.header.seq
+        r = self.recording
+        with self.lock:
+            r.arrivals[topic].setdefault(seq, arrival)
+            if topic == "camera/frame":
+                r.stamps[seq] = message.header.stamp.to_seconds()
+                if message.ground_truth is not None:
+                    r.ground_truth[seq] = pose_to_matrix(message.ground_truth)
+            elif topic == "egomotion":
+                r.increments[seq] = (message.increment.forward, message.increment.left, message.increment.yaw)
+            elif topic == "grid/pose":
+                r.grid_poses[seq] = (message.pose.position.x, message.pose.position.y, message.heading)
+            elif topic == "map/pose":
+                r.map_poses[seq] = (message.pose.position.x, message.pose.position.y, heading_of(message.pose),
+                                    message.experience_id)
+            elif topic == "view/template":
+                r.templates[seq] = (message.template_id, message.is_new)
+            elif topic == "loop/closure":
+                r.closures.append((message.frame, message.matched_frame, message.matched_template, message.votes))
+            elif topic == "grid/activity":
+                r.lattices[seq] = image_from_msg(message.image)

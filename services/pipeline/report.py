@@ -1,0 +1,181 @@
+"""Evaluation of a recorded run: trajectories of every stage in TUM and KITTI formats, metrics
+per stage against the ground truth, and the plots (issue 6, "Results folder")."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from services.evaluation import metrics, plots
+from services.evaluation.results import write_json, write_trajectory_files
+from services.evaluation.trajectory import Trajectory, camera_to_planar, integrate_increments
+from services.pipeline.recorder import Recording
+
+log = logging.getLogger(__name__)
+
+RPE_DISTANCES_M = (1.0, 10.0, 100.0)
+STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map": "map/pose"}
+
+
+def percentiles(values) -> dict[str, float | None]:
+    values = np.asarray(list(values), dtype=float)
+    if values.size == 0:
+        return {"p50": None, "p99": None}
+    return {"p50": float(np.percentile(values, 50)), "p99": float(np.percentile(values, 99))}
+
+
+def trajectories(recording: Recording) -> dict[str, Trajectory]:
+    """One planar trajectory per stage that published (and the ground truth when known), each
+    over the frames that stage published, in frame order."""
+    stamps = recording.stamps
+    result: dict[str, Trajectory] = {}
+    seqs = sorted(recording.increments)
+    if seqs:
+        forward, left, yaw = (np.array([recording.increments[s][i] for s in seqs]) for i in range(3))
+        result["egomotion"] = integrate_increments(forward, left, yaw, [stamps.get(s, 0.1 * s) for s in seqs])
+    for name, poses in (("gridcells", recording.grid_poses), ("map", recording.map_poses)):
+        seqs = sorted(poses)
+        if seqs:
+            x, y, heading = (np.array([poses[s][i] for s in seqs]) for i in range(3))
+            result[name] = Trajectory.from_planar([stamps.get(s, 0.1 * s) for s in seqs], x, y, heading)
+    seqs = sorted(recording.ground_truth)
+    if seqs:
+        result["groundtruth"] = camera_to_planar(Trajectory.from_matrices(
+            [stamps[s] for s in seqs], np.stack([recording.ground_truth[s] for s in seqs])))
+    return result
+
+
+def _seqs(recording: Recording, name: str) -> list[int]:
+    source = {"egomotion": recording.increments, "gridcells": recording.grid_poses, "map": recording.map_poses,
+              "groundtruth": recording.ground_truth}[name]
+    return sorted(source)
+
+
+def stage_metrics(estimate: Trajectory, reference: Trajectory) -> dict:
+    """ATE after SE(2) and Sim(3) alignment, RPE over fixed distances, KITTI drift, endpoint error."""
+    length = reference.path_length()
+    result = {
+        "path_length_m": estimate.path_length(),
+        "ate_se2": metrics.ate(estimate, reference, align="se2"),
+        "ate_sim3": metrics.ate(estimate, reference, align="sim3"),
+        "endpoint": metrics.endpoint_error(estimate, reference),
+        "rpe": {f"{d:g}m": metrics.rpe(estimate, reference, d) for d in RPE_DISTANCES_M if d < length},
+        "kitti_drift": metrics.kitti_drift(estimate, reference),
+    }
+    return result
+
+
+def evaluate(recording: Recording, statuses: dict[str, dict], restarts: dict[str, int], frames_expected: int | None,
+             wall_time_s: float) -> tuple[dict, dict[str, Trajectory]]:
+    """metrics.json's content and the trajectories it was computed from."""
+    trajs = trajectories(recording)
+    reference = trajs.get("groundtruth")
+    sent = sorted(recording.stamps)
+    stages: dict[str, dict] = {}
+    for name, topic in STAGE_TOPICS.items():
+        if name not in trajs:
+            continue
+        seqs = _seqs(recording, name)
+        arrivals = recording.arrivals[topic]
+        frame_arrivals = recording.arrivals["camera/frame"]
+        latencies_ms = [1e3 * (arrivals[s] - frame_arrivals[s]) for s in seqs if s in frame_arrivals and s in arrivals]
+        times = sorted(arrivals.values())
+        stage = {
+            "frames": len(seqs),
+            "missing_frames": len(set(sent) - set(seqs)),
+            "latency_ms": percentiles(latencies_ms),
+            "throughput_fps": (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else None,
+        }
+        if reference is not None:
+            common = sorted(set(seqs) & set(_seqs(recording, "groundtruth")))
+            if len(common) >= 3:
+                index = {s: i for i, s in enumerate(seqs)}
+                ref_index = {s: i for i, s in enumerate(_seqs(recording, "groundtruth"))}
+                stage.update(stage_metrics(trajs[name].select([index[s] for s in common]),
+                                           reference.select([ref_index[s] for s in common])))
+        stages[name] = stage
+    summary = {
+        "frames_expected": frames_expected,
+        "frames_sent": len(sent),
+        "wall_time_s": wall_time_s,
+        "loop_closures": [dict(zip(("frame", "matched_frame", "matched_template", "votes"), c)) for c in recording.closures],
+        "view_templates": 1 + max((t for t, _ in recording.templates.values()), default=-1),
+        "experiences": 1 + max((m[3] for m in recording.map_poses.values()), default=-1),
+        "groundtruth_path_length_m": reference.path_length() if reference is not None else None,
+        "recorder_decode_errors": recording.decode_errors,
+    }
+    services = {name: {**status, "restarts": restarts.get(name, 0)} for name, status in sorted(statuses.items())}
+    for name, count in restarts.items():
+        services.setdefault(name, {"restarts": count})
+    return {"summary": summary, "stages": stages, "services": services}, trajs
+
+
+def write_report(folder: Path, recording: Recording, result: dict, trajs: dict[str, Trajectory]) -> list[Path]:
+    """Trajectory files, metrics.json and the plots; returns the files written."""
+    written: list[Path] = []
+    for name, traj in trajs.items():
+        written.extend(write_trajectory_files(folder, name, traj))
+    written.append(write_json(folder / "metrics.json", result))
+    if trajs:
+        written.append(plots.plot_trajectories(folder / "trajectories.png", trajs, title="Trajectories of every stage"))
+    reference = trajs.get("groundtruth")
+    if reference is not None:
+        series = {}
+        ref_seqs = _seqs(recording, "groundtruth")
+        for name in STAGE_TOPICS:
+            if name in trajs:
+                seqs = _seqs(recording, name)
+                common = sorted(set(seqs) & set(ref_seqs))
+                if len(common) >= 3:
+                    index, ref_index = {s: i for i, s in enumerate(seqs)}, {s: i for i, s in enumerate(ref_seqs)}
+                    errors = metrics.position_errors(trajs[name].select([index[s] for s in common]),
+                                                     reference.select([ref_index[s] for s in common]), align="se2")
+                    series[name] = (np.array(common), errors)
+        if series:
+            written.append(plots.plot_series(folder / "errors.png", series, "frame", "position error after SE(2) alignment (m)",
+                                             title="Error over frames"))
+    if recording.templates or recording.map_poses:
+        series = {}
+        if recording.templates:
+            seqs = sorted(recording.templates)
+            series["view template"] = (np.array(seqs), np.array([recording.templates[s][0] for s in seqs]))
+        if recording.map_poses:
+            seqs = sorted(recording.map_poses)
+            series["experience"] = (np.array(seqs), np.array([recording.map_poses[s][3] for s in seqs]))
+        written.append(plots.plot_series(folder / "templates.png", series, "frame", "id",
+                                         title="View templates and experiences over frames (paper Fig. 10)"))
+    if recording.lattices:
+        seqs = sorted(recording.lattices)
+        picks = sorted({seqs[int(i)] for i in np.linspace(0, len(seqs) - 1, min(4, len(seqs)))})
+        written.append(plots.plot_heatmaps(folder / "lattice.png", {f"frame {s}": recording.lattices[s] for s in picks},
+                                           title="Grid-cell activity (paper Fig. 1)"))
+    return written
+
+
+def summary_rows(result: dict) -> list[tuple[str, object, str]]:
+    """The Metric | Value | Unit table printed at the end of a run."""
+    summary = result["summary"]
+    rows: list[tuple[str, object, str]] = [
+        ("frames sent", summary["frames_sent"], "frames"),
+        ("wall time", summary["wall_time_s"], "s"),
+        ("ground-truth path", summary["groundtruth_path_length_m"], "m"),
+        ("view templates", summary["view_templates"], ""),
+        ("experiences", summary["experiences"], ""),
+        ("confirmed loop closures", len(summary["loop_closures"]), ""),
+    ]
+    for name, stage in result["stages"].items():
+        rows.append((f"{name}: frames", stage["frames"], "frames"))
+        if "ate_se2" in stage:
+            rows.append((f"{name}: ATE RMSE (SE(2))", stage["ate_se2"]["rmse"], "m"))
+            rows.append((f"{name}: ATE RMSE (Sim(3))", stage["ate_sim3"]["rmse"], "m"))
+            rows.append((f"{name}: endpoint error", stage["endpoint"]["percent_of_path"], "% of path"))
+        rows.append((f"{name}: latency p50 from frame", stage["latency_ms"]["p50"], "ms"))
+        rows.append((f"{name}: latency p99 from frame", stage["latency_ms"]["p99"], "ms"))
+        rows.append((f"{name}: throughput", stage["throughput_fps"], "frames/s"))
+    for name, service in result["services"].items():
+        for counter in ("decode_errors", "gaps", "restarts"):
+            if service.get(counter):
+                rows.append((f"{name}: {counter.replace('_', ' ')}", service[counter], ""))
+    return rows

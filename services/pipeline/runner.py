@@ -1,0 +1,273 @@
+"""Runs the whole stack as separate local processes around a Zenoh router on loopback (DESIGN.md,
+"Runtime": the embedded default), supervises them, and evaluates the run.
+
+Steps: router → every service → wait for their health tokens → source (last, so no frame is
+published before its consumers listen) → wait until the last stage acknowledges the last frame,
+restarting any service that dies → query statuses and the map → stop everything → evaluate.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from services.common.config import SERVICES_DIR
+from services.common.errors import ConfigError, GridslamError
+from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
+from services.evaluation.results import results_dir, write_config
+from services.pipeline.recorder import Recorder
+from services.pipeline.report import evaluate, write_report
+from services.source.spec import open_source
+
+log = logging.getLogger(__name__)
+
+STARTUP_TIMEOUT_S = 120.0   # services settle networks and load models before their token appears
+STOP_TIMEOUT_S = 5.0
+
+
+class RunError(GridslamError):
+    """The run could not start or complete (the message says which service and where its log is)."""
+
+
+class RunConfig(BaseModel):
+    """A whole-stack run (`gridslam run`); written to config.json in the results folder."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
+    egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
+        None, description="Ego-motion estimator (default: the preset's).")
+    integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
+    decoder: Literal["paper", "fft", "subpixel"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
+    preset: str | None = Field(None, description="Dataset preset passed to every service that has one.")
+    config_file: Path | None = Field(None, description="gridslam TOML config file passed to every service.")
+    n_frames: int | None = Field(None, ge=1, description="Process only this many frames.")
+    start: int = Field(0, ge=0, description="First frame index.")
+    step: int = Field(1, ge=1, description="Take every step-th frame.")
+    listen: str = Field(DEFAULT_ROUTER, description="Endpoint of the run's router (outside clients connect here).")
+    robot: str = Field("robot0", description="Robot name.")
+    window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
+    mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
+    view: str | None = Field(None, description="Also run the viewer, serving HTTP on this host:port.")
+    stall_timeout: float = Field(60.0, gt=0, description="Fail when no frame completes for this many seconds.")
+
+
+@dataclass
+class Child:
+    name: str
+    args: list[str]
+    log_path: Path
+    process: subprocess.Popen | None = None
+    restarts: int = 0
+    log_file: object = None
+
+
+@dataclass
+class Supervisor:
+    """Starts, watches, restarts and stops the run's processes (subprocesses: never a fork of a
+    process that has a Zenoh session open)."""
+
+    log_dir: Path
+    children: dict[str, Child] = field(default_factory=dict)
+
+    def start(self, name: str, args: list[str]) -> Child:
+        child = self.children.get(name) or Child(name, args, self.log_dir / f"{name}.log")
+        child.args = args
+        self.children[name] = child
+        child.log_file = open(child.log_path, "a")
+        child.process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=child.log_file,
+                                         stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        return child
+
+    def exited(self, name: str) -> int | None:
+        child = self.children[name]
+        return child.process.poll() if child.process else None
+
+    def restart(self, name: str, args: list[str] | None = None) -> None:
+        child = self.children[name]
+        child.restarts += 1
+        child.log_file.close()
+        log.warning("%s exited with code %s; restart %d", name, child.process.returncode, child.restarts)
+        self.start(name, args or child.args)
+
+    def log_tail(self, name: str, lines: int = 5) -> str:
+        try:
+            return " | ".join(self.children[name].log_path.read_text().strip().splitlines()[-lines:])
+        except OSError:
+            return ""
+
+    def stop(self, names: list[str]) -> None:
+        """SIGTERM the named children together, SIGKILL what is left after STOP_TIMEOUT_S."""
+        running = [self.children[n] for n in names if n in self.children and self.children[n].process.poll() is None]
+        for child in running:
+            child.process.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for child in running:
+            try:
+                child.process.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop within %.0f s; killed", child.name, STOP_TIMEOUT_S)
+                child.process.kill()
+                child.process.wait()
+        for name in names:
+            if name in self.children and self.children[name].log_file:
+                self.children[name].log_file.close()
+
+
+def endpoint_port(endpoint: str) -> tuple[str, int]:
+    try:
+        protocol, address = endpoint.split("/", 1)
+        host, port = address.rsplit(":", 1)
+        return host.strip("[]"), int(port)
+    except ValueError:
+        raise ConfigError(f"listen endpoint {endpoint!r} is not PROTOCOL/HOST:PORT") from None
+
+
+def check_port_free(endpoint: str) -> None:
+    host, port = endpoint_port(endpoint)
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError:
+            raise ConfigError(f"{endpoint} is in use (another gridslam run?); choose another with --listen") from None
+
+
+def wait_port_open(endpoint: str, process: subprocess.Popen, timeout: float = 15.0) -> None:
+    host, port = endpoint_port(endpoint)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and process.poll() is None:
+        with socket.socket() as sock:
+            if sock.connect_ex((host, port)) == 0:
+                return
+        time.sleep(0.05)
+    raise RunError(f"the router did not start listening on {endpoint}")
+
+
+def has_preset(service: str, preset: str) -> bool:
+    return (SERVICES_DIR / service / "presets" / f"{preset}.toml").is_file()
+
+
+def service_args(config: RunConfig, name: str) -> list[str]:
+    """`gridslam service NAME ...` arguments of one service of the run."""
+    args = ["service", name, "-e", config.listen, "--robot", config.robot, "--instance", name]
+    if config.config_file is not None:
+        args += ["--config", str(config.config_file)]
+    if config.preset and has_preset(name, config.preset):
+        args += ["--preset", config.preset]
+    if name == "egomotion" and config.egomotion:
+        args += ["--estimator", config.egomotion]
+    if name == "gridcells":
+        args += ["--integrator", config.integrator] + (["--decoder", config.decoder] if config.decoder else [])
+    if name == "viewer":
+        args += ["--http", config.view]
+    return args
+
+
+def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
+    stop = config.start + config.n_frames * config.step if config.n_frames else None
+    args = ["service", "source", "-e", config.listen, "--robot", config.robot, "--instance", "source",
+            "--source", config.source, "--start", str(start), "--step", str(config.step),
+            "--window", str(config.window), "--ack-topic", ack_topic]
+    if config.config_file is not None:
+        args += ["--config", str(config.config_file)]
+    if config.preset:
+        args += ["--preset", config.preset]
+    return args + (["--stop", str(stop)] if stop is not None else [])
+
+
+@dataclass
+class RunResult:
+    folder: Path
+    metrics: dict
+
+
+def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop_event: threading.Event | None = None) -> RunResult:
+    """Run the whole stack on `config.source`, write the results folder, return its metrics.
+
+    `progress(done, total)` is called about five times a second; `stop_event` ends the run early."""
+    stop_event = stop_event or threading.Event()
+    check_port_free(config.listen)
+    stop = config.start + config.n_frames * config.step if config.n_frames else None
+    frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=config.preset)
+    total = None if getattr(frames, "live", False) else len(frames)
+    folder = results_dir(out)
+    write_config(folder / "config.json", config)
+    (folder / "logs").mkdir(exist_ok=True)
+    stages = ["egomotion", "gridcells"] + (["loopclosure", "expmap"] if config.mapping else [])
+    ack_topic = "map/pose" if config.mapping else "grid/pose"
+    supervisor = Supervisor(folder / "logs")
+    started = time.monotonic()
+    try:
+        router = supervisor.start("router", ["router", "--listen", config.listen])
+        wait_port_open(config.listen, router.process)
+        for name in stages + (["viewer"] if config.view else []):
+            supervisor.start(name, service_args(config, name))
+        runtime = RuntimeConfig(connect=[config.listen], robot=config.robot)
+        with Recorder(runtime) as recorder:
+            _wait_for_services(supervisor, recorder, stages)
+            supervisor.start("source", source_args(config, config.start, ack_topic))
+            _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
+            statuses = recorder.statuses()
+            recording = recorder.recording
+        wall_time = time.monotonic() - started
+    finally:
+        supervisor.stop([n for n in supervisor.children if n != "router"])
+        supervisor.stop(["router"])
+    restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
+    result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
+    write_report(folder, recording, result, trajs)
+    return RunResult(folder, result)
+
+
+def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[str]) -> None:
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while True:
+        for name in stages:
+            if supervisor.exited(name) is not None:
+                raise RunError(f"service {name} exited at start-up (code {supervisor.exited(name)}): "
+                               f"{supervisor.log_tail(name)} (log: {supervisor.children[name].log_path})")
+        missing = set(stages) - recorder.live_services()
+        if not missing:
+            return
+        if time.monotonic() > deadline:
+            raise RunError(f"services {sorted(missing)} did not come up within {STARTUP_TIMEOUT_S:.0f} s")
+        time.sleep(0.1)
+
+
+def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> None:
+    last_done, last_change = -1, time.monotonic()
+    while not stop_event.is_set():
+        done = recorder.count(ack_topic)
+        now = time.monotonic()
+        if done != last_done:
+            last_done, last_change = done, now
+        if progress is not None:
+            progress(done, total)
+        code = supervisor.exited("source")
+        acked = recorder.last_seq(ack_topic)
+        if code == 0:   # the source exits 0 once its last frame is acknowledged
+            return
+        if code is not None:
+            # Resume after the last acknowledged frame: frames in flight are sent again.
+            resume = config.start if acked is None else acked + config.step
+            supervisor.restart("source", source_args(config, resume, ack_topic))
+        for name in stages:
+            if supervisor.exited(name) is not None:
+                supervisor.restart(name)
+        if supervisor.exited("router") is not None:
+            supervisor.restart("router")
+        if now - last_change > config.stall_timeout:
+            raise RunError(f"no frame completed for {config.stall_timeout:.0f} s (last acknowledged: {acked}); "
+                           f"see the logs in {supervisor.log_dir}")
+        time.sleep(0.2)
