@@ -10,6 +10,7 @@ BENCHMARKS: dict[str, str] = {
     "source": "services.source.bench",
     "gridcells": "services.gridcells.bench",
     "egomotion": "services.egomotion.bench",
+    "viewer": "services.viewer.bench",
 }
 
 

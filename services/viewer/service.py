@@ -66,6 +66,7 @@ class ViewerService(Service):
         self.http = _bind(config, self)         # bind now: a busy port is an error before anything starts
         self._http_thread: threading.Thread | None = None
         self._image_cache: dict[str, tuple[int, bytes]] = {}
+        self._map_json: tuple[int, bytes] | None = None   # (map revision, its JSON), shared by all browsers
         self._own_entities: list = []            # status and liveliness subscribers (outside the base's seq checks)
         self._snapshot_wanted = True
         self._snapshot_sent = -SNAPSHOT_RETRY_S
@@ -233,6 +234,17 @@ class ViewerService(Service):
         state["connected"] = self.session is not None
         return state
 
+    def encode(self, state: dict) -> bytes:
+        """JSON of a view. The map, the largest part, is encoded once per revision for all browsers."""
+        experience_map = state.pop("map", None)
+        body = json.dumps(state, separators=(",", ":")).encode()
+        if experience_map is None:
+            return body
+        cached = self._map_json
+        if cached is None or cached[0] != experience_map["revision"]:
+            cached = self._map_json = (experience_map["revision"], json.dumps(experience_map, separators=(",", ":")).encode())
+        return body[:-1] + b',"map":' + cached[1] + b"}"
+
     def revision(self) -> int:
         return self.viewer_state.revision   # an int read: no lock needed
 
@@ -307,7 +319,7 @@ class _Handler(BaseHTTPRequestHandler):
             if path in viewer.static:
                 self._send(*viewer.static[path])
             elif path == "/state.json":
-                self._send(json.dumps(viewer.view(), separators=(",", ":")).encode(), "application/json")
+                self._send(viewer.encode(viewer.view()), "application/json")
             elif path == "/events":
                 self._stream(viewer)
             elif path in ("/camera.jpg", "/lattice.png"):
@@ -361,7 +373,7 @@ class _Handler(BaseHTTPRequestHandler):
                                         include_images=now - images_at >= 1 / config.image_rate_hz)
                     map_at = now if "map" in state else map_at
                     images_at = now if "camera" in state or "lattice" in state else images_at
-                    self.wfile.write(b"data: " + json.dumps(state, separators=(",", ":")).encode() + b"\n\n")
+                    self.wfile.write(b"data: " + viewer.encode(state) + b"\n\n")
                     self.wfile.flush()
                     sent_at = now
                 viewer.http_stop.wait(1 / config.rate_hz)

@@ -50,7 +50,7 @@ class Track:
     """One stage's trajectory: the decimated path and the current pose."""
 
     max_points: int
-    points: list[tuple[float, float]] = field(default_factory=list)
+    points: list[tuple[float, float]] = field(default_factory=list)   # rounded to millimetres
     epoch: int = 0
     stride: int = 1                 # one drawn point per this many samples
     samples: int = 0                # samples since the track (re)started
@@ -69,9 +69,9 @@ class Track:
         """Append one sample; True when it started the track afresh."""
         restarted = self.restart_if_older(seq)
         self.last_seq = seq
-        self.pose = (x, y, heading)
+        self.pose = (_r(x), _r(y), _r(heading, 4))
         if self.samples % self.stride == 0:
-            self.points.append((x, y))
+            self.points.append(self.pose[:2])   # rounded once here, so views only slice
             if len(self.points) > self.max_points:
                 self.points = self.points[::2]
                 self.stride *= 2
@@ -82,11 +82,7 @@ class Track:
     def tail(self, epoch: int | None, sent: int) -> dict:
         """The points a browser holding (`epoch`, `sent` points) lacks, as JSON."""
         start = sent if epoch == self.epoch and sent <= len(self.points) else 0
-        return {
-            "epoch": self.epoch, "from": start, "points": [[_r(x), _r(y)] for x, y in self.points[start:]],
-            "pose": None if self.pose is None else [_r(self.pose[0]), _r(self.pose[1]), _r(self.pose[2], 4)],
-            "seq": self.last_seq,
-        }
+        return {"epoch": self.epoch, "from": start, "points": self.points[start:], "pose": self.pose, "seq": self.last_seq}
 
 
 @dataclass
@@ -184,9 +180,8 @@ class ViewerState:
         if ground_truth is not None:
             self.tracks["ground_truth"].add(seq, *planar_from_camera(ground_truth))
         self._arrivals[seq] = now
-        if len(self._arrivals) > ARRIVALS_KEPT:
-            for old in sorted(self._arrivals)[: len(self._arrivals) - ARRIVALS_KEPT]:
-                del self._arrivals[old]
+        while len(self._arrivals) > ARRIVALS_KEPT:   # the oldest arrival first (dicts keep insertion order)
+            del self._arrivals[next(iter(self._arrivals))]
         self._saw_frame(seq, now, restarted)
 
     def on_grid_activity(self, seq: int, image: np.ndarray, lattice_shift: tuple[float, float], neurons: int,
@@ -215,7 +210,7 @@ class ViewerState:
         map held here has fewer experiences or links than the update says the map has (some
         updates were missed: ask for a snapshot)."""
         for experience_id, x, y in experiences:
-            self.experiences[experience_id] = (x, y)
+            self.experiences[experience_id] = (_r(x), _r(y))
         for source, target, loop_closure in links:
             self.links[(source, target)] = loop_closure
         self.experience_count, self.link_count = experience_count, link_count
@@ -228,12 +223,12 @@ class ViewerState:
         """The whole map as of frame `seq` (the `map/snapshot` reply). It replaces what is held,
         unless updates newer than it were applied meanwhile: then it only fills in what is missing."""
         if self.map_seq is None or seq >= self.map_seq:
-            self.experiences = {experience_id: (x, y) for experience_id, x, y in experiences}
+            self.experiences = {experience_id: (_r(x), _r(y)) for experience_id, x, y in experiences}
             self.links = {(source, target): loop_closure for source, target, loop_closure in links}
             self.map_seq = seq
         else:
             for experience_id, x, y in experiences:
-                self.experiences.setdefault(experience_id, (x, y))
+                self.experiences.setdefault(experience_id, (_r(x), _r(y)))
             for source, target, loop_closure in links:
                 self.links.setdefault((source, target), loop_closure)
         self.experience_count = max(self.experience_count, len(self.experiences))
@@ -279,7 +274,7 @@ class ViewerState:
         if include_map and cursor.map_revision != self.map_revision:
             state["map"] = {
                 "revision": self.map_revision,
-                "experiences": [[i, _r(x), _r(y)] for i, (x, y) in sorted(self.experiences.items())],
+                "experiences": [(i, x, y) for i, (x, y) in sorted(self.experiences.items())],
                 "links": [[s, t, int(loop)] for (s, t), loop in self.links.items()],
             }
             cursor.map_revision = self.map_revision
@@ -320,10 +315,11 @@ class ViewerState:
 
     def rate(self, now: float) -> float:
         """Frames per second over the last `rate_window_s` (0 when the pipeline stalls)."""
-        times = [(t, seq) for t, seq in self._frame_times if now - t <= self.params.rate_window_s]
-        if len(times) < 2 or times[-1][0] <= times[0][0]:
+        first = next((entry for entry in self._frame_times if now - entry[0] <= self.params.rate_window_s), None)
+        last = self._frame_times[-1] if self._frame_times else None
+        if first is None or last[0] <= first[0]:
             return 0.0
-        return (times[-1][1] - times[0][1]) / (times[-1][0] - times[0][0])
+        return (last[1] - first[1]) / (last[0] - first[0])
 
     def service_rows(self, now: float) -> list[dict]:
         rows = []

@@ -31,7 +31,7 @@ import pytest
 import zenoh
 
 from schemas import (
-    CameraFrame, EgoMotion, Experience, Header, Link, LoopClosure, MapPose, MapUpdate, PlanarIncrement, Time,
+    CameraFrame, EgoMotion, Experience, Header, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, PlanarIncrement, Time,
     ViewTemplate,
 )
 from services.common import codec, topics
@@ -173,34 +173,46 @@ def read_event(response) -> dict:
             return json.loads(line[6:])
 
 
+def follow(stream, last_frame: int) -> tuple[dict[str, list], list[int]]:
+    """Read one event stream until `last_frame`: the points of every track, and the frame counters seen."""
+    points: dict[str, list] = {}
+    frames = []
+    while not frames or frames[-1] < last_frame:
+        event = read_event(stream)
+        if event["counters"]["frame"] is not None:
+            frames.append(event["counters"]["frame"])
+        for stage, track in event["tracks"].items():
+            assert track["from"] == len(points.setdefault(stage, []))   # tails continue what was sent
+            points[stage] += track["points"]
+    return points, frames
+
+
 def test_viewer_process_streams_a_run_and_stops_on_sigterm(world):
     pipeline = Pipeline("deadreckoning")
     run = ShortRun(pipeline.session, world, frames=60, fps=60)
     try:
-        with urllib.request.urlopen(pipeline.url + "events", timeout=10) as stream:
-            first = read_event(stream)
-            assert first["robot"] == "robot0" and first["tracks"]["grid"]["points"] == []
+        # Two browsers watch at once; each gets the whole run.
+        with urllib.request.urlopen(pipeline.url + "events", timeout=10) as stream, \
+                urllib.request.urlopen(pipeline.url + "events", timeout=10) as second:
             run.start()
-            points = {stage: [] for stage in first["tracks"]}
-            frames = []
-            while not frames or frames[-1] is None or frames[-1] < 59:
-                event = read_event(stream)
-                frames.append(event["counters"]["frame"])
-                for stage, track in event["tracks"].items():
-                    assert track["from"] == len(points[stage])   # tails continue what was sent
-                    points[stage] += track["points"]
-            seen = [f for f in frames if f is not None]
-            assert len(set(seen)) > 3 and seen == sorted(seen)   # the frame counter advances, never back
-            # Every drawn point arrived: ground truth may skip (camera frames are newest-only), poses may not.
-            assert len(points["grid"]) == len(points["egomotion"]) == len(points["map"]) == 60
-            assert 10 < len(points["ground_truth"]) <= 60
-            # The viewer's dead reckoning of `egomotion` is the gridcells dead-reckoning integrator's path.
-            assert np.allclose(points["egomotion"], points["grid"], atol=2e-3)
-            truth_end = planar_from_camera(world[59].ground_truth)[:2]
-            assert np.allclose(points["ground_truth"][-1], truth_end, atol=2e-3)
-            assert math.dist(points["egomotion"][-1], truth_end) > 0.1   # the yaw bias shows
+            other: dict = {}
+            reader = threading.Thread(target=lambda: other.update(result=follow(second, 59)), daemon=True)
+            reader.start()
+            points, frames = follow(stream, 59)
+            reader.join(timeout=10)
+        assert len(set(frames)) > 3 and frames == sorted(frames)   # the frame counter advances, never back
+        # Every drawn point arrived: ground truth may skip (camera frames are newest-only), poses may not.
+        assert len(points["grid"]) == len(points["egomotion"]) == len(points["map"]) == 60
+        assert 10 < len(points["ground_truth"]) <= 60
+        assert other["result"][0]["grid"] == points["grid"]
+        # The viewer's dead reckoning of `egomotion` is the gridcells dead-reckoning integrator's path.
+        assert np.allclose(points["egomotion"], points["grid"], atol=2e-3)
+        truth_end = planar_from_camera(world[59].ground_truth)[:2]
+        assert np.allclose(points["ground_truth"][-1], truth_end, atol=2e-3)
+        assert math.dist(points["egomotion"][-1], truth_end) > 0.1   # the yaw bias shows
         run.join(timeout=10)
         assert run.error is None
+
         def final_state():
             state = pipeline.state()
             received = {row["service"]: row.get("received", 0) for row in state["services"]}
@@ -213,6 +225,23 @@ def test_viewer_process_streams_a_run_and_stops_on_sigterm(world):
         assert rows["viewer"]["alive"] and rows["gridcells"]["alive"] and rows["gridcells"]["gaps"] == 0
         assert rows["viewer"]["gaps"] == 0   # sparse and newest-only topics skip frames by design
         assert state["counters"]["decode_errors"] == 0
+
+        # An update that says the map is bigger than what the viewer holds makes it query map/snapshot.
+        snapshot = MapSnapshot(header=Header(seq=61, stamp=Time.from_seconds(6.1), robot="robot0"),
+                               experiences=[Experience(id=i, x=float(i), y=-1.0, heading=0.0, template_id=i, frame=i)
+                                            for i in range(12)], links=[])
+        queries = []
+
+        def answer(query):
+            queries.append(str(query.key_expr))
+            query.reply(query.key_expr, codec.encode(snapshot), encoding=zenoh.Encoding(codec.encoding_of(snapshot)))
+
+        queryable = pipeline.session.declare_queryable(topics.key("robot0", "map/snapshot"), answer)
+        run.put("map/update", MapUpdate(header=Header(seq=60, stamp=Time.from_seconds(6.0), robot="robot0"),
+                                        experiences=[], links=[], experience_count=12, link_count=9))
+        state = wait_for(lambda: (s := pipeline.state()) and len(s["map"]["experiences"]) == 12 and s, timeout=5)
+        assert queries and state["map"]["experiences"][11] == [11, 11.0, -1.0] and state["counters"]["experiences"] == 12
+        queryable.undeclare()
 
         # SIGTERM with a browser still connected: out within 2 s, exit 0, the port closed.
         with urllib.request.urlopen(pipeline.url + "events", timeout=10) as stream:

@@ -32,6 +32,11 @@ def camera_pose(forward: float, left: float, yaw: float) -> np.ndarray:
     return matrix
 
 
+def as_json(state: ViewerState, now: float, cursor: Cursor | None = None, **options) -> dict:
+    """The state as the browser gets it: through JSON."""
+    return json.loads(json.dumps(state.view(now, cursor, **options)))
+
+
 def status(decode_errors=0, gaps=0):
     return {"state": "running", "received": 5, "published": 5, "decode_errors": decode_errors, "gaps": gaps,
             "stale": 0, "uptime": 1.0}
@@ -42,7 +47,7 @@ def test_egomotion_is_dead_reckoned_heading_first():
     state = ViewerState()
     for seq, (forward, yaw) in enumerate([(1.0, 0.0), (1.0, math.pi / 2), (1.0, 0.0)]):
         state.on_egomotion(seq, forward, 0.0, yaw, now=seq * 0.1)
-    track = state.view(now=1.0)["tracks"]["egomotion"]
+    track = as_json(state, now=1.0)["tracks"]["egomotion"]
     # heading += yaw, then the step along the new heading (as the gridcells baseline integrates).
     assert track["points"] == [[1.0, 0.0], [1.0, 1.0], [1.0, 2.0]]
     assert track["pose"][:2] == [1.0, 2.0] and track["pose"][2] == pytest.approx(math.pi / 2, abs=1e-4)
@@ -52,7 +57,7 @@ def test_ground_truth_is_shown_planar():
     assert planar_from_camera(camera_pose(2.0, 1.0, math.radians(30))) == pytest.approx((2.0, 1.0, math.radians(30)))
     state = ViewerState()
     state.on_camera_frame(4, None, camera_pose(3.0, -0.5, -0.2), now=0.0)
-    track = state.view(now=0.0)["tracks"]["ground_truth"]
+    track = as_json(state, now=0.0)["tracks"]["ground_truth"]
     assert track["points"] == [[3.0, -0.5]] and track["pose"] == [3.0, -0.5, -0.2] and track["seq"] == 4
 
 
@@ -61,22 +66,22 @@ def test_tails_send_only_new_points_and_thinning_resends_the_path():
     cursor = Cursor()
     for seq in range(3):
         state.on_grid_pose(seq, float(seq), 0.0, 0.0, (0.0, 0.0), 1.0, False, "grid", now=0.0)
-    first = state.view(0.0, cursor)["tracks"]["grid"]
+    first = as_json(state, 0.0, cursor)["tracks"]["grid"]
     assert first["from"] == 0 and [p[0] for p in first["points"]] == [0, 1, 2]
     state.on_grid_pose(3, 3.0, 0.0, 0.0, (0.0, 0.0), 1.0, False, "grid", now=0.0)
-    second = state.view(0.0, cursor)["tracks"]["grid"]
+    second = as_json(state, 0.0, cursor)["tracks"]["grid"]
     assert second["from"] == 3 and second["points"] == [[3.0, 0.0]] and second["epoch"] == first["epoch"]
     # A fifth point exceeds max_points: every other point is kept, a new epoch sends it all.
     state.on_grid_pose(4, 4.0, 0.0, 0.0, (0.0, 0.0), 1.0, False, "grid", now=0.0)
-    third = state.view(0.0, cursor)["tracks"]["grid"]
+    third = as_json(state, 0.0, cursor)["tracks"]["grid"]
     assert third["epoch"] == first["epoch"] + 1 and third["from"] == 0 and [p[0] for p in third["points"]] == [0, 2, 4]
     for seq in range(5, 8):   # stride 2 now: only even samples are drawn, the pose follows every one
         state.on_grid_pose(seq, float(seq), 0.0, 0.0, (0.0, 0.0), 1.0, False, "grid", now=0.0)
-    fourth = state.view(0.0, cursor)["tracks"]["grid"]
+    fourth = as_json(state, 0.0, cursor)["tracks"]["grid"]
     assert fourth["points"] == [[6.0, 0.0]] and fourth["from"] == 3 and fourth["pose"][0] == 7.0
-    assert state.view(0.0, cursor)["tracks"]["grid"]["points"] == []
+    assert as_json(state, 0.0, cursor)["tracks"]["grid"]["points"] == []
     state.on_grid_pose(8, 8.0, 0.0, 0.0, (0.0, 0.0), 1.0, False, "grid", now=0.0)
-    fifth = state.view(0.0, cursor)["tracks"]["grid"]
+    fifth = as_json(state, 0.0, cursor)["tracks"]["grid"]
     assert fifth["from"] == 0 and [p[0] for p in fifth["points"]] == [0, 4, 8] and fifth["epoch"] == third["epoch"] + 1
 
 
@@ -86,10 +91,10 @@ def test_a_new_run_restarts_tracks_and_the_frame_counter():
     for seq in range(50, 53):
         state.on_camera_frame(seq, None, camera_pose(seq, 0.0, 0.0), now=seq * 0.1)
         state.on_egomotion(seq, 1.0, 0.0, 0.0, now=seq * 0.1)
-    state.view(6.0, cursor)
+    as_json(state, 6.0, cursor)
     state.on_camera_frame(0, None, camera_pose(0.0, 0.0, 0.0), now=6.0)
     state.on_egomotion(0, 0.5, 0.0, 0.0, now=6.0)
-    view = state.view(6.0, cursor)
+    view = as_json(state, 6.0, cursor)
     assert view["counters"]["frame"] == 0
     assert view["tracks"]["ground_truth"]["from"] == 0 and view["tracks"]["ground_truth"]["points"] == [[0.0, 0.0]]
     assert view["tracks"]["egomotion"]["from"] == 0 and view["tracks"]["egomotion"]["points"] == [[0.5, 0.0]]
@@ -112,15 +117,15 @@ def test_counters_frame_rate_latency_and_totals():
     state.on_liveliness("egomotion", "b", False)
     state.on_status("gridcells", "a", status(decode_errors=2, gaps=3), now=1.0)
     state.on_status("viewer", "v", status(decode_errors=1, gaps=40), now=1.0)
-    counters = state.view(now=1.05)["counters"]
+    counters = as_json(state, now=1.05)["counters"]
     assert counters["frame"] == 20 and counters["rate_hz"] == pytest.approx(20.0)
     assert counters["latency_stage"] == "map" and counters["latency_ms"] == pytest.approx(50.0)
     assert counters["loop_closures"] == 1 and counters["loop_closure_links"] == 1
     assert counters["experiences"] == 2 and counters["templates"] == 9 and counters["saturations"] == 1
     # Decode errors of every service; gaps of the pipeline only (a viewer skips frames on purpose).
     assert counters["decode_errors"] == 3 and counters["gaps"] == 3 and counters["services_alive"] == 2
-    assert state.view(now=10.0)["counters"]["rate_hz"] == 0.0   # stalled: no frames in the window
-    rows = {row["service"]: row for row in state.view(now=5.0)["services"]}
+    assert as_json(state, now=10.0)["counters"]["rate_hz"] == 0.0   # stalled: no frames in the window
+    rows = {row["service"]: row for row in as_json(state, now=5.0)["services"]}
     assert rows["gridcells"]["silent"] and not rows["egomotion"]["alive"] and not rows["egomotion"]["silent"]
     assert not state.service_rows(now=2.0)[1]["silent"] and rows["gridcells"]["gaps"] == 3
 
@@ -139,18 +144,18 @@ def test_map_is_sent_when_changed_and_snapshots_merge_by_age():
     cursor = Cursor()
     missing = state.on_map_update(10, [(5, 1.0, 2.0)], [(4, 5, False)], experience_count=6, link_count=5)
     assert missing   # experiences 0..4 were never seen: the adapter asks for a snapshot
-    assert state.view(0.0, cursor)["map"]["experiences"] == [[5, 1.0, 2.0]]
-    assert "map" not in state.view(0.0, cursor)
+    assert as_json(state, 0.0, cursor)["map"]["experiences"] == [[5, 1.0, 2.0]]
+    assert "map" not in as_json(state, 0.0, cursor)
     # An older snapshot fills in what is missing but does not undo the newer update.
     state.on_map_snapshot(8, [(i, float(i), 0.0) for i in range(6)], [(i, i + 1, i == 4) for i in range(5)])
-    view = state.view(0.0, cursor, include_map=False)
+    view = as_json(state, 0.0, cursor, include_map=False)
     assert "map" not in view
-    view = state.view(0.0, cursor)
+    view = as_json(state, 0.0, cursor)
     assert view["map"]["experiences"][5] == [5, 1.0, 2.0] and len(view["map"]["experiences"]) == 6
     assert [4, 5, 0] in view["map"]["links"] and view["counters"]["experiences"] == 6
     # A newer snapshot replaces everything (relaxation moved the experiences).
     state.on_map_snapshot(12, [(i, 2.0 * i, 1.0) for i in range(6)], [(i, i + 1, False) for i in range(5)])
-    view = state.view(0.0, cursor)
+    view = as_json(state, 0.0, cursor)
     assert view["map"]["experiences"][5] == [5, 10.0, 1.0] and [4, 5, 0] in view["map"]["links"]
     assert not state.on_map_update(13, [(6, 1.0, 1.0)], [(5, 6, False)], experience_count=7, link_count=6)
 
@@ -162,15 +167,15 @@ def test_images_are_offered_once_per_revision():
     grey = np.full((480, 640), 90, np.uint8)
     state.on_camera_frame(3, display_image(grey, "mono8", 320), None, now=0.0)
     state.on_grid_activity(3, np.arange(64 * 64, dtype=np.uint8).reshape(64, 64) % 251, (1.25, -0.5), 128, 2.5)
-    view = state.view(0.0, cursor)
+    view = as_json(state, 0.0, cursor)
     assert view["camera"] == {"revision": 1, "seq": 3, "size": [320, 240]}
     assert view["lattice"]["shift"] == [1.25, -0.5] and view["lattice"]["size"] == [64, 64]
-    again = state.view(0.0, cursor)
+    again = as_json(state, 0.0, cursor)
     assert "camera" not in again and "lattice" not in again
     state.on_camera_frame(4, display_image(grey, "mono8", 320), None, now=0.1)
-    assert "camera" not in state.view(0.0, cursor, include_images=False)
-    assert state.view(0.0, cursor)["camera"]["seq"] == 4
-    json.dumps(state.view(0.0))   # everything the page gets is plain JSON
+    assert "camera" not in as_json(state, 0.0, cursor, include_images=False)
+    assert as_json(state, 0.0, cursor)["camera"]["seq"] == 4
+    json.dumps(as_json(state, 0.0))   # everything the page gets is plain JSON
 
 
 def test_display_image_converts_and_downsamples():
