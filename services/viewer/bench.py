@@ -2,9 +2,10 @@
 
 With `--pipeline FRAMES`, instead: whether a watching viewer slows a running pipeline. A
 router and a gridcells service (dead reckoning: the fastest stage there is) run as processes;
-FRAMES ego-motion messages are published as fast as back pressure allows, and the time until
-the last grid pose comes back is measured without a viewer, with a viewer, and with a viewer
-streaming to several browsers (one of which connects and never reads).
+FRAMES ego-motion messages are published as fast as back pressure allows (the time until the
+last grid pose comes back), then at a steady `--rate` (each frame's latency from publication
+to its grid pose), without a viewer, with a viewer, and with a viewer streaming to several
+browsers (one of which connects and never reads).
 
 Per topic: decoding a message and handling it (the work the viewer's main thread does for
 each sample; its inverse is how many messages per second the viewer can take before it would
@@ -63,10 +64,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--experiences", type=int, default=2000, help="experiences in the map (default 2000)")
     parser.add_argument("--pipeline", type=int, metavar="FRAMES", help="measure a running pipeline with and without a viewer instead")
     parser.add_argument("--browsers", type=int, default=4, help="browsers streaming in the --pipeline run (default 4)")
+    parser.add_argument("--rate", type=float, default=100.0, help="frames per second of the paced --pipeline runs (default 100)")
     args = parser.parse_args(argv)
     print(f"load average before: {os.getloadavg()[0]:.2f}\n")
     if args.pipeline:
-        return pipeline(args.pipeline, args.browsers)
+        return pipeline(args.pipeline, args.browsers, args.rate)
 
     viewer = ViewerService(RuntimeConfig(), ViewerConfig(http="127.0.0.1:0"), "bench")
     rng = np.random.default_rng(0)
@@ -189,70 +191,92 @@ def _stream(url: str, stop: threading.Event, read: bool) -> None:
         pass
 
 
-def pipeline(frames: int, browsers: int) -> int:
+def pipeline(frames: int, browsers: int, rate_hz: float) -> int:
     port = _free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     processes = [_gridslam("router", "--listen", endpoint)]
-    viewer = None
     session = None
     try:
         _wait(lambda: _port_open(port))
         processes.append(_gridslam("service", "gridcells", "--integrator", "deadreckoning", "-e", endpoint))
         session = open_session(RuntimeConfig(connect=[endpoint]), threading.Event())
         _wait(lambda: any(r.ok for r in session.liveliness().get(topics.key("robot0", "health/gridcells/*"), timeout=1)))
-        received = []
+        arrivals: dict[int, float] = {}
+        sent: dict[int, float] = {}
         done = threading.Event()
+        expected = 0
         next_seq = 0
 
         def on_pose(sample):
-            received.append(1)
-            if len(received) == frames:
+            seq = codec.decode(sample.payload.to_bytes(), GridPose).header.seq
+            arrivals[seq] = time.perf_counter()
+            if len(arrivals) == expected:
                 done.set()
 
         subscriber = session.declare_subscriber(topics.key("robot0", "grid/pose"), on_pose)
         publisher = session.declare_publisher(topics.key("robot0", "egomotion"), encoding=codec.encoding_of(EgoMotion),
                                               congestion_control=zenoh.CongestionControl.BLOCK)
 
-        def run_once() -> float:
-            nonlocal next_seq
-            received.clear()
+        def run_once(count: int, rate: float | None) -> tuple[float, list[float]]:
+            """Seconds for `count` frames (as fast as possible when `rate` is None) and each frame's
+            latency from publication to its grid pose, ms."""
+            nonlocal next_seq, expected
+            arrivals.clear()
+            sent.clear()
             done.clear()
-            payloads = [codec.encode(EgoMotion(header=header(next_seq + i), increment=PlanarIncrement(
-                forward=0.1, left=0.0, yaw=0.001), quality=1.0, estimator="passthrough")) for i in range(frames)]
-            next_seq += frames
+            expected = count
+            seqs = range(next_seq, next_seq + count)
+            payloads = [codec.encode(EgoMotion(header=header(seq), increment=PlanarIncrement(
+                forward=0.1, left=0.0, yaw=0.001), quality=1.0, estimator="passthrough")) for seq in seqs]
+            next_seq += count
             started = time.perf_counter()
-            for payload in payloads:
+            for i, (seq, payload) in enumerate(zip(seqs, payloads)):
+                if rate:
+                    delay = started + i / rate - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
+                sent[seq] = time.perf_counter()
                 publisher.put(payload)
             if not done.wait(120):
-                raise RuntimeError(f"only {len(received)} of {frames} grid poses came back")
-            return time.perf_counter() - started
+                raise RuntimeError(f"only {len(arrivals)} of {count} grid poses came back")
+            return time.perf_counter() - started, [1000 * (arrivals[seq] - sent[seq]) for seq in seqs]
 
-        run_once()   # warm-up
-        rows = [("no viewer", [run_once() for _ in range(3)])]
-        viewer = _gridslam("service", "viewer", "-e", endpoint, "--http", "127.0.0.1:0")
-        url = viewer.stdout.readline().split()[-1]
+        def measure() -> tuple[float, float, float]:
+            """Median seconds of three unpaced runs; median and 95th-percentile latency of a paced run."""
+            elapsed = statistics.median(run_once(frames, None)[0] for _ in range(3))
+            latencies = sorted(run_once(max(50, int(2 * rate_hz)), rate_hz)[1])
+            return elapsed, statistics.median(latencies), latencies[int(0.95 * (len(latencies) - 1))]
+
+        run_once(frames, None)   # warm-up
+        rows = [("no viewer", measure())]
+        processes.append(_gridslam("service", "viewer", "-e", endpoint, "--http", "127.0.0.1:0"))
+        url = processes[-1].stdout.readline().split()[-1]
         _wait(lambda: any(r.ok for r in session.liveliness().get(topics.key("robot0", "health/viewer/*"), timeout=1)))
-        rows.append(("viewer, no browser", [run_once() for _ in range(3)]))
+        rows.append(("viewer, no browser", measure()))
         stop = threading.Event()
-        readers = [threading.Thread(target=_stream, args=(url, stop, i > 0), daemon=True) for i in range(browsers)]
-        for reader in readers:
-            reader.start()
+        for i in range(browsers):
+            threading.Thread(target=_stream, args=(url, stop, i > 0), daemon=True).start()
         time.sleep(1.0)
-        rows.append((f"viewer, {browsers} browsers (one never reads)", [run_once() for _ in range(3)]))
+        rows.append((f"viewer, {browsers} browsers (one never reads)", measure()))
         stop.set()
-        print(f"{frames} egomotion messages through gridcells (dead reckoning), three runs each:\n")
-        print("| pipeline | median s | frames/s | ratio to no viewer |")
-        print("|---|---:|---:|---:|")
-        base = statistics.median(rows[0][1])
-        for name, times in rows:
-            median = statistics.median(times)
-            print(f"| {name} | {median:.3f} | {frames / median:,.0f} | {median / base:.2f} |")
+        time.sleep(1.2)   # the viewer's next status message
+        with urllib.request.urlopen(url + "state.json", timeout=10) as response:
+            viewer_row = next(row for row in json.loads(response.read())["services"] if row["service"] == "viewer")
+        print(f"Unpaced: {frames} egomotion messages through gridcells (dead reckoning), median of three runs. "
+              f"Paced: {max(50, int(2 * rate_hz))} messages at {rate_hz:g} Hz, publication to grid pose.\n")
+        print("| pipeline | unpaced s | frames/s | ratio to no viewer | paced latency median ms | 95th percentile ms |")
+        print("|---|---:|---:|---:|---:|---:|")
+        base = rows[0][1][0]
+        for name, (elapsed, median, p95) in rows:
+            print(f"| {name} | {elapsed:.3f} | {frames / elapsed:,.0f} | {elapsed / base:.2f} | {median:.2f} | {p95:.2f} |")
+        print(f"\nThe viewer received {viewer_row['received']} messages and counted {viewer_row['gaps']} missing "
+              "(dropped rather than pushing back).")
         subscriber.undeclare()
         publisher.undeclare()
     finally:
         if session is not None:
             session.close()
-        for process in ([viewer] if viewer else []) + processes[::-1]:
+        for process in processes[::-1]:
             process.terminate()
             try:
                 process.wait(timeout=5)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import queue
 import socket
 import threading
 import time
@@ -50,6 +51,10 @@ KEEPALIVE_S = 1.0          # an idle stream still gets a state (ages and rates m
 SOCKET_TIMEOUT_S = 10.0    # a browser that stops reading for this long loses its stream
 SNAPSHOT_RETRY_S = 2.0     # at most one map/snapshot query per this many seconds
 SNAPSHOT_TIMEOUT_S = 5.0
+# Samples waiting for the main thread. Pose messages are small and newest-only topics queue
+# only a marker, so a deep inbox is cheap; it absorbs a pause of the main thread (the GIL held
+# while a connecting browser's JSON is encoded) even at thousands of frames per second.
+INBOX_SIZE = 4096
 
 
 class ViewerService(Service):
@@ -57,6 +62,8 @@ class ViewerService(Service):
 
     def __init__(self, runtime: RuntimeConfig, config: ViewerConfig, instance: str | None = None):
         super().__init__(runtime, instance)
+        self._inbox = queue.Queue(maxsize=INBOX_SIZE)
+        self.dropped_busy = 0                   # samples dropped because the inbox was full
         self.config = config
         self.viewer_state = ViewerState(config.params())
         self.lock = threading.Lock()            # guards self.viewer_state (main thread, Zenoh and HTTP threads)
@@ -116,6 +123,19 @@ class ViewerService(Service):
                                                          history=True),
         ]
         self._query_snapshot_if_due()
+
+    def _put(self, entry: tuple[int, tuple[str, bytes, str] | None]) -> None:
+        # An observer must never push back on the pipeline (issue 8): where the base blocks
+        # Zenoh's delivery on a full inbox, the viewer drops the sample instead. The seq check
+        # then counts the frames missing as gaps of the viewer (its row on the page).
+        try:
+            self._inbox.put_nowait(entry)
+        except queue.Full:
+            self.dropped_busy += 1
+            if entry[1] is None:   # a newest-only marker: let the next sample queue a new one
+                subscription = self._subscriptions[entry[0]]
+                with subscription.lock:
+                    subscription.pending = None
 
     def _subscribe_sparse(self, topic: str, handler, newest_only: bool = False) -> None:
         """A topic published only when something happens or every few frames (map/update,
