@@ -19,7 +19,6 @@ from services.common.errors import ConfigError
 log = logging.getLogger(__name__)
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
-OPEN_TIMEOUT_MS = 1000   # one attempt to reach the router when opening a client session
 
 
 class RuntimeConfig(BaseModel):
@@ -91,11 +90,12 @@ def zenoh_config(runtime: RuntimeConfig) -> zenoh.Config:
             config.insert_json5("listen/endpoints", json.dumps(runtime.listen))
         config.insert_json5("scouting/multicast/enabled", json.dumps(runtime.multicast_scouting))
         if runtime.mode == "client":
-            # Give up opening after OPEN_TIMEOUT_MS so the caller stays responsive to signals
-            # (a native call blocked inside zenoh.open never runs Python's handlers), and once
-            # open, retry a lost router at a short period so that a restarted router is
+            # One try per endpoint when opening: the caller stays responsive to signals (a native
+            # call blocked inside zenoh.open never runs Python's handlers), open_session's loop
+            # retries, and a first router that is down does not hide the next one. Once open,
+            # a lost router is retried at a short period so that a restarted router is
             # rejoined within a second (issue 7); the default backs off to several seconds.
-            config.insert_json5("connect/timeout_ms", str(OPEN_TIMEOUT_MS))
+            config.insert_json5("connect/timeout_ms", "0")
             config.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 1.5}')
         for name, value in runtime.cfg.items():
             config.insert_json5(name, value)

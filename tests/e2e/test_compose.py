@@ -281,9 +281,6 @@ def test_image_holds_every_file_the_compose_files_name():
     assert not any(source.startswith("deploy/certs") or source in ("deploy", "deploy/", ".") for source in copied)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "pyproject.toml [tool.setuptools.package-data] lacks the viewer's static files (services/viewer/static/*.js, "
-    "*.css): add \"**/*.js\", \"**/*.css\" to services' patterns, then remove this marker"))
 def test_image_install_ships_every_data_file():
     """The image installs the project as a package (not editable): every non-Python file
     under services/ and schemas/ (presets, JSON schemas, the viewer's page) must be package

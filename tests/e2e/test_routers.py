@@ -100,10 +100,6 @@ def test_routers_form_one_network_and_a_service_moves_to_its_second_router():
     assert code == 0, err
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "services/common/runtime.py sets connect/timeout_ms=1000 for clients: Zenoh then retries the first endpoint "
-    "until the timeout and never tries the next, so a service whose first router is down never opens. With "
-    "timeout_ms 0 (one try per endpoint; open_session's loop retries) it opens on the second. Remove this marker then."))
 def test_a_session_opens_while_its_first_router_is_down():
     down, b = free_port(), free_port()
     router_b = start_router(b)
