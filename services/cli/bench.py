@@ -11,6 +11,7 @@ BENCHMARKS: dict[str, str] = {
     "gridcells": "services.gridcells.bench",
     "egomotion": "services.egomotion.bench",
     "viewer": "services.viewer.bench",
+    "pipeline": "services.pipeline.bench",
 }
 
 

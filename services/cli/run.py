@@ -17,12 +17,15 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
     parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
     parser.add_argument("--preset", help="dataset preset: synthetic, nubot, kitti, stlucia")
+    parser.add_argument("--calibration", type=Path, help="calibration TOML file for the source")
     parser.add_argument("-c", "--config", type=Path, help="gridslam TOML config file for every service")
     parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
     parser.add_argument("--n-frames", type=int, help="process only this many frames")
     parser.add_argument("--start", type=int, help="first frame index")
     parser.add_argument("--step", type=int, help="take every step-th frame")
     parser.add_argument("-l", "--listen", help=f"the run's router endpoint (default {DEFAULT_ROUTER})")
+    parser.add_argument("-e", "--connect", metavar="ENDPOINT",
+                        help="use the router at ENDPOINT instead of starting one (e.g. several robots on one network)")
     parser.add_argument("--robot", help="robot name (default robot0)")
     parser.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
                         help="skip loop closure and the experience map")
@@ -71,8 +74,8 @@ def execute(args, **defaults) -> int:
     from services.pipeline.runner import RunConfig, run_pipeline
 
     flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
-             "preset": args.preset, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": args.step, "listen": args.listen, "robot": args.robot, "mapping": args.mapping, "view": args.view}
+             "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
+             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view}
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
     progress = Progress()
     try:

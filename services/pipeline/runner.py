@@ -50,11 +50,14 @@ class RunConfig(BaseModel):
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
     decoder: Literal["paper", "fft", "subpixel"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
     preset: str | None = Field(None, description="Dataset preset passed to every service that has one.")
+    calibration: Path | None = Field(None, description="Calibration TOML file for the source (overrides the preset's).")
     config_file: Path | None = Field(None, description="gridslam TOML config file passed to every service.")
     n_frames: int | None = Field(None, ge=1, description="Process only this many frames.")
     start: int = Field(0, ge=0, description="First frame index.")
     step: int = Field(1, ge=1, description="Take every step-th frame.")
     listen: str = Field(DEFAULT_ROUTER, description="Endpoint of the run's router (outside clients connect here).")
+    connect: str | None = Field(
+        None, description="Use the router already at this endpoint instead of starting one (several robots on one network).")
     robot: str = Field("robot0", description="Robot name.")
     window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
@@ -154,13 +157,18 @@ def wait_port_open(endpoint: str, process: subprocess.Popen, timeout: float = 15
     raise RunError(f"the router did not start listening on {endpoint}")
 
 
+def router_endpoint(config: RunConfig) -> str:
+    """Where the run's services connect: the router it started, or the one it was given."""
+    return config.connect or config.listen
+
+
 def has_preset(service: str, preset: str) -> bool:
     return (SERVICES_DIR / service / "presets" / f"{preset}.toml").is_file()
 
 
 def service_args(config: RunConfig, name: str) -> list[str]:
     """`gridslam service NAME ...` arguments of one service of the run."""
-    args = ["service", name, "-e", config.listen, "--robot", config.robot, "--instance", name]
+    args = ["service", name, "-e", router_endpoint(config), "--robot", config.robot, "--instance", name]
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]
     if config.preset and has_preset(name, config.preset):
@@ -176,13 +184,15 @@ def service_args(config: RunConfig, name: str) -> list[str]:
 
 def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
-    args = ["service", "source", "-e", config.listen, "--robot", config.robot, "--instance", "source",
+    args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
             "--source", config.source, "--start", str(start), "--step", str(config.step),
             "--window", str(config.window), "--ack-topic", ack_topic]
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]
     if config.preset:
         args += ["--preset", config.preset]
+    if config.calibration is not None:
+        args += ["--calibration", str(config.calibration)]
     return args + (["--stop", str(stop)] if stop is not None else [])
 
 
@@ -197,9 +207,11 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
 
     `progress(done, total)` is called about five times a second; `stop_event` ends the run early."""
     stop_event = stop_event or threading.Event()
-    check_port_free(config.listen)
+    if config.connect is None:
+        check_port_free(config.listen)
     stop = config.start + config.n_frames * config.step if config.n_frames else None
-    frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=config.preset)
+    frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=config.preset,
+                         calibration=config.calibration)
     total = None if getattr(frames, "live", False) else len(frames)
     folder = results_dir(out)
     write_config(folder / "config.json", config)
@@ -209,11 +221,12 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     supervisor = Supervisor(folder / "logs")
     started = time.monotonic()
     try:
-        router = supervisor.start("router", ["router", "--listen", config.listen])
-        wait_port_open(config.listen, router.process)
+        if config.connect is None:
+            router = supervisor.start("router", ["router", "--listen", config.listen])
+            wait_port_open(config.listen, router.process)
         for name in stages + (["viewer"] if config.view else []):
             supervisor.start(name, service_args(config, name))
-        runtime = RuntimeConfig(connect=[config.listen], robot=config.robot)
+        runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
         with Recorder(runtime) as recorder:
             _wait_for_services(supervisor, recorder, stages)
             supervisor.start("source", source_args(config, config.start, ack_topic))
@@ -265,7 +278,7 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
         for name in stages:
             if supervisor.exited(name) is not None:
                 supervisor.restart(name)
-        if supervisor.exited("router") is not None:
+        if "router" in supervisor.children and supervisor.exited("router") is not None:
             supervisor.restart("router")
         if now - last_change > config.stall_timeout:
             raise RunError(f"no frame completed for {config.stall_timeout:.0f} s (last acknowledged: {acked}); "
