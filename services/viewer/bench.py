@@ -34,9 +34,8 @@ import numpy as np
 import zenoh
 
 from schemas import CameraFrame, EgoMotion, GridActivity, GridPose, Header, MapPose, PlanarIncrement, Time
-from services.common import codec
+from services.common import codec, topics
 from services.common.convert import image_to_msg, planar_pose
-from services.common import topics
 from services.common.runtime import RuntimeConfig, open_session
 from services.viewer.config import ViewerConfig
 from services.viewer.service import ViewerService

@@ -15,7 +15,6 @@ A `seq` that goes backwards starts the track afresh (a new run on the same robot
 
 from __future__ import annotations
 
-import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -25,8 +24,6 @@ import cv2
 import numpy as np
 
 from services.gridcells.integrator import DeadReckoning
-
-log = logging.getLogger(__name__)
 
 STAGES = ("ground_truth", "egomotion", "grid", "map")
 LATENCY_SAMPLES = 20        # latency shown is the median of the last this many frames

@@ -3,6 +3,7 @@ served in-process (no Zenoh: the adapter's handlers are called with real message
 
 import json
 import math
+import time
 import urllib.error
 import urllib.request
 
@@ -15,7 +16,8 @@ from services.common.convert import image_to_msg, planar_pose
 from services.common.errors import ConfigError
 from services.common.runtime import RuntimeConfig
 from services.viewer.config import ViewerConfig
-from services.viewer.service import ViewerService
+from services.common.service import Subscription
+from services.viewer.service import INBOX_SIZE, ViewerService
 from services.viewer.state import (
     Cursor, ViewerParams, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png, planar_from_camera,
 )
@@ -297,3 +299,16 @@ def test_camera_frame_message_feeds_a_downsampled_image(viewer):
     frame = CameraFrame(header=header(9), left=image_to_msg(wide), ground_truth=planar_pose(0.0, 0.0, 0.0))
     viewer.on_camera_frame(frame)
     assert viewer.viewer_state.camera.shape == (50, 320)
+
+
+def test_a_full_inbox_drops_instead_of_pushing_back(viewer):
+    # Where the base service blocks Zenoh's delivery on a full inbox, the viewer drops and counts.
+    subscription = Subscription("camera/frame", CameraFrame, lambda message: None, newest_only=True, drop_stale=False)
+    viewer._subscriptions.append(subscription)
+    for _ in range(INBOX_SIZE):
+        viewer._put((0, ("key", b"", "encoding")))
+    started = time.monotonic()
+    viewer._put((0, ("key", b"", "encoding")))
+    subscription.pending = ("key", b"newest", "encoding")
+    viewer._put((0, None))   # a newest-only marker that does not fit: the next sample must queue a new one
+    assert time.monotonic() - started < 0.05 and viewer.dropped_busy == 2 and subscription.pending is None
