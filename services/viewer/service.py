@@ -137,6 +137,10 @@ class ViewerService(Service):
                 with subscription.lock:
                     subscription.pending = None
 
+    def extra_counters(self) -> dict[str, float]:
+        extra = super().extra_counters()
+        return {**extra, "dropped_busy": self.dropped_busy} if self.dropped_busy else extra
+
     def _subscribe_sparse(self, topic: str, handler, newest_only: bool = False) -> None:
         """A topic published only when something happens or every few frames (map/update,
         loop/closure, grid/activity), or taken newest-only here: a jump in its seq is by design,
@@ -211,7 +215,7 @@ class ViewerService(Service):
             return
         counters = status.model_dump(include={"state", "received", "published", "decode_errors", "gaps", "stale", "uptime"})
         counters["uptime"] = round(counters["uptime"], 1)
-        counters["extra"] = {name: round(value, 3) for name, value in getattr(status, "extra", {}).items()}
+        counters["extra"] = {name: round(value, 3) for name, value in status.extra.items()}
         with self.lock:
             self.viewer_state.on_status(status.service, status.instance, counters, time.monotonic())
 

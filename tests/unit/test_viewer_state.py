@@ -312,3 +312,4 @@ def test_a_full_inbox_drops_instead_of_pushing_back(viewer):
     subscription.pending = ("key", b"newest", "encoding")
     viewer._put((0, None))   # a newest-only marker that does not fit: the next sample must queue a new one
     assert time.monotonic() - started < 0.05 and viewer.dropped_busy == 2 and subscription.pending is None
+    assert viewer.status().extra["dropped_busy"] == 2   # shown in the viewer's row on the page
