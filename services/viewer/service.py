@@ -160,32 +160,35 @@ class ViewerService(Service):
     def on_egomotion(self, message: EgoMotion) -> None:
         increment = message.increment
         with self.lock:
-            self.viewer_state.on_egomotion(message.header.seq, increment.forward, increment.left, increment.yaw, time.monotonic())
+            self.viewer_state.on_egomotion(message.header.seq, increment.forward, increment.left, increment.yaw,
+                                           time.monotonic())
 
     def on_grid_pose(self, message: GridPose) -> None:
         position = message.pose.position
         with self.lock:
-            self.viewer_state.on_grid_pose(message.header.seq, position.x, position.y, message.heading, message.lattice_shift,
-                                    message.step_length, message.saturated, message.integrator, time.monotonic())
+            self.viewer_state.on_grid_pose(message.header.seq, position.x, position.y, message.heading,
+                                           message.lattice_shift, message.step_length, message.saturated,
+                                           message.integrator, time.monotonic())
 
     def on_map_pose(self, message: MapPose) -> None:
         position = message.pose.position
         with self.lock:
-            self.viewer_state.on_map_pose(message.header.seq, position.x, position.y, message.heading, message.experience_id,
-                                   time.monotonic())
+            self.viewer_state.on_map_pose(message.header.seq, position.x, position.y, message.heading,
+                                          message.experience_id, time.monotonic())
 
     def on_map_update(self, message: MapUpdate) -> None:
         experiences, links = _map_items(message)
         with self.lock:
-            missing = self.viewer_state.on_map_update(message.header.seq, experiences, links, message.experience_count,
-                                               message.link_count)
+            missing = self.viewer_state.on_map_update(message.header.seq, experiences, links,
+                                                      message.experience_count, message.link_count)
         if missing:
             self._snapshot_wanted = True
         self._query_snapshot_if_due()
 
     def on_loop_closure(self, message: LoopClosure) -> None:
         with self.lock:
-            self.viewer_state.on_loop_closure(message.frame, message.matched_frame, message.matched_template, message.votes)
+            self.viewer_state.on_loop_closure(message.frame, message.matched_frame, message.matched_template,
+                                              message.votes)
 
     def on_camera_frame(self, message: CameraFrame) -> None:
         image = display_image(image_from_msg(message.left), message.left.encoding, self.config.camera_width)
@@ -198,12 +201,13 @@ class ViewerService(Service):
         if image.ndim == 3:
             image = image.mean(axis=2).astype(image.dtype)
         with self.lock:
-            self.viewer_state.on_grid_activity(message.header.seq, image, message.lattice_shift, message.neurons, message.max_rate)
+            self.viewer_state.on_grid_activity(message.header.seq, image, message.lattice_shift, message.neurons,
+                                               message.max_rate)
 
     def on_view_template(self, message: ViewTemplate) -> None:
         with self.lock:
-            self.viewer_state.on_view_template(message.header.seq, message.template_id, message.is_new, message.distance,
-                                        message.matched_frame, message.template_count)
+            self.viewer_state.on_view_template(message.header.seq, message.template_id, message.is_new,
+                                               message.distance, message.matched_frame, message.template_count)
 
     # ----------------------------------------------------------------- Zenoh threads
     def _on_status_sample(self, sample: zenoh.Sample) -> None:
@@ -253,7 +257,8 @@ class ViewerService(Service):
     # ----------------------------------------------------------------- HTTP threads
     def view(self, cursor: Cursor | None = None, include_map: bool = True, include_images: bool = True) -> dict:
         with self.lock:
-            state = self.viewer_state.view(time.monotonic(), cursor, include_map=include_map, include_images=include_images)
+            state = self.viewer_state.view(time.monotonic(), cursor, include_map=include_map,
+                                           include_images=include_images)
         state["robot"] = self.robot
         state["connected"] = self.session is not None
         return state
