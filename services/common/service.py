@@ -11,6 +11,7 @@ with its key, counted and dropped. SIGTERM/SIGINT stop the loop; the session is 
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import queue
@@ -32,6 +33,7 @@ from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
 log = logging.getLogger(__name__)
 
 INBOX_SIZE = 16          # samples waiting for the main thread; beyond this, publishers are pushed back
+REPLAY_FRAMES = 64       # frames whose outputs are kept to answer a re-sent input again
 STATUS_PERIOD_S = 1.0    # how often the status message is published
 LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors
 
@@ -45,6 +47,7 @@ class Counters:
     decode_errors: int = 0
     gaps: int = 0
     stale: int = 0
+    replayed: int = 0
     dropped_newest_only: int = 0
 
 
@@ -96,6 +99,8 @@ class Service:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._entities: list = []
         self._last_status = 0.0
+        self._current_seq: int | None = None
+        self._outputs: collections.OrderedDict[int, list[tuple[str, Message]]] = collections.OrderedDict()
 
     # ----------------------------------------------------------------- for subclasses
     def setup(self) -> None:
@@ -140,9 +145,18 @@ class Service:
         self._entities.append(self.session.declare_queryable(key, lambda query: self._reply(query, key, answer)))
 
     def publish(self, topic: str, message: Message) -> None:
-        """Publish a pipeline message on `topic` (congestion control BLOCK: offline replay loses nothing)."""
+        """Publish a pipeline message on `topic` (congestion control BLOCK: offline replay loses nothing).
+
+        What a handler publishes is remembered for the last REPLAY_FRAMES input frames: when an
+        input frame arrives again (a source re-sending the frames in flight after a downstream
+        service was restarted), the same outputs are published again instead of recomputed, so
+        the restarted service downstream gets them and this service's state is untouched."""
         self._send(topic, message)
         self.counters.published += 1
+        if self._current_seq is not None:
+            self._outputs.setdefault(self._current_seq, []).append((topic, message))
+            while len(self._outputs) > REPLAY_FRAMES:
+                self._outputs.popitem(last=False)
 
     def _send(self, topic: str, message: Message) -> None:
         self.publisher(topic).put(codec.encode(message))
@@ -204,7 +218,8 @@ class Service:
 
     def extra_counters(self) -> dict[str, float]:
         """Service-specific counters for the status message (override to add some)."""
-        return {"dropped_newest_only": self.counters.dropped_newest_only} if self.counters.dropped_newest_only else {}
+        counters = {"replayed": self.counters.replayed, "dropped_newest_only": self.counters.dropped_newest_only}
+        return {name: value for name, value in counters.items() if value}
 
     def _serve_once(self) -> None:
         try:
@@ -231,13 +246,20 @@ class Service:
         missing, stale = subscription.seq.check(seq)
         if stale and subscription.drop_stale:
             self.counters.stale += 1
-            log.debug("%s: dropped stale seq %d on %s", self.name, seq, key)
+            for topic, output in self._outputs.get(seq, ()):
+                self._send(topic, output)
+                self.counters.replayed += 1
+            log.debug("%s: stale seq %d on %s (outputs replayed: %d)", self.name, seq, key, len(self._outputs.get(seq, ())))
             return
         if missing:
             self.counters.gaps += missing
             log.warning("%s: %d frame(s) missing before seq %d on %s", self.name, missing, seq, key)
         self.last_seq = max(self.last_seq, seq)
-        subscription.handler(message)
+        self._current_seq = seq
+        try:
+            subscription.handler(message)
+        finally:
+            self._current_seq = None
 
     def _put(self, entry: tuple[int, tuple[str, bytes, str] | None]) -> None:
         # Blocks Zenoh's delivery thread while the inbox is full: that is the back pressure.

@@ -45,6 +45,10 @@ class SourceConfig(BaseModel):
     rate: float = Field(0.0, ge=0.0, description="Frames per second to publish at; 0: as fast as the window allows.")
     window: int = Field(8, ge=0, description="Frames in flight awaiting ack_topic before the source waits; 0: no flow control.")
     ack_topic: str = Field("map/pose", description="Topic whose messages mark a frame as processed by the pipeline.")
+    resend_after: float = Field(
+        5.0, gt=0, description="Seconds without an acknowledgement after which the frames in flight are sent again "
+                               "(a service restarted downstream lost them; services that already handled a frame "
+                               "replay their outputs instead of computing them again).")
     exit_at_end: bool = Field(True, description="Exit once the last frame is acknowledged (or sent, without flow control).")
 
 
@@ -74,7 +78,9 @@ class SourceService(Service):
         self.live = bool(getattr(frames, "live", False))
         self.window = 0 if self.live else config.window
         self.iterator = iter(frames)
-        self.in_flight: collections.deque[int] = collections.deque()
+        self.in_flight: collections.OrderedDict[int, CameraFrame] = collections.OrderedDict()
+        self.last_progress = time.monotonic()
+        self.resent = 0
         self.sent = 0
         self.finished = False
         self.next_due = 0.0
@@ -88,10 +94,18 @@ class SourceService(Service):
 
     def on_ack(self, message: Message) -> None:
         seq = message.header.seq
-        while self.in_flight and self.in_flight[0] <= seq:
-            self.in_flight.popleft()
+        while self.in_flight and next(iter(self.in_flight)) <= seq:
+            self.in_flight.popitem(last=False)
+            self.last_progress = time.monotonic()
 
     def on_idle(self) -> None:
+        if self.in_flight and time.monotonic() - self.last_progress > self.config.resend_after:
+            log.warning("source: no acknowledgement for %.1f s; sending the %d frames in flight again (from %d)",
+                        self.config.resend_after, len(self.in_flight), next(iter(self.in_flight)))
+            for message in self.in_flight.values():
+                self.publish("camera/frame", message)
+            self.resent += len(self.in_flight)
+            self.last_progress = time.monotonic()
         if self.finished:
             if not self.in_flight or not self.window:
                 if self.config.exit_at_end:
@@ -117,14 +131,17 @@ class SourceService(Service):
         if frame is None:
             self.finished = True
             return
-        self.publish("camera/frame", frame_message(frame, self.header(frame.seq, frame.stamp, "camera")))
+        message = frame_message(frame, self.header(frame.seq, frame.stamp, "camera"))
+        self.publish("camera/frame", message)
         self.last_seq = frame.seq
         self.sent += 1
         if self.window:
-            self.in_flight.append(frame.seq)
+            if not self.in_flight:
+                self.last_progress = time.monotonic()
+            self.in_flight[frame.seq] = message
 
     def extra_counters(self) -> dict[str, float]:
-        extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight)}
+        extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent}
         if self.live:
             extra["frames_dropped"] = getattr(self.frames, "frames_dropped", 0)
         return {**super().extra_counters(), **extra}
@@ -142,7 +159,7 @@ class SourceService(Service):
             self.waiting_since = now
         elif now - self.waiting_since >= WAIT_LOG_PERIOD_S:
             log.warning("source: waited %.0f s for %s of frame %d", now - self.waiting_since, self.config.ack_topic,
-                        self.in_flight[0])
+                        next(iter(self.in_flight)))
             self.waiting_since = now
 
 
@@ -157,10 +174,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
     parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control)")
     parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
+    parser.add_argument("--resend-after", type=float, help="seconds without acknowledgement before resending (default 5)")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
-    fields = ("source", "preset", "calibration", "mono", "start", "stop", "step", "rate", "window", "ack_topic")
+    fields = ("source", "preset", "calibration", "mono", "start", "stop", "step", "rate", "window", "ack_topic",
+              "resend_after")
     config = load_config(SourceConfig, "source", config_file=args.config,
                          overrides={name: getattr(args, name) for name in fields})
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
