@@ -292,3 +292,69 @@ def test_image_install_ships_every_data_file():
                   if path.is_file() and path.suffix not in (".py", ".pyc") and "__pycache__" not in path.parts}
     missing = sorted(str(path.relative_to(REPO)) for path in data_files - shipped)
     assert not missing, f"not package data in pyproject.toml, so absent from the image: {missing}"
+
+
+# --------------------------------------------------------------------------- the same topology, as processes
+FRAMES = 30   # a short run: the pipeline, not the dataset, is under test
+
+
+def local_environment(robot_env: dict[str, str], router: str, results: Path) -> dict[str, str]:
+    """deploy/robot.env as the containers get it, with what only a container has replaced: the
+    router's address, the results volume, and a viewer port that is free on this machine."""
+    env = {name: value.replace("/results", str(results), 1) if value.startswith("/results") else value
+           for name, value in robot_env.items()}
+    env.update(GRIDSLAM_RUNTIME_CONNECT=router, GRIDSLAM_VIEWER_HTTP="127.0.0.1:0", GRIDSLAM_VIEWER_ALLOW_REMOTE="false",
+               GRIDSLAM_SOURCE_STOP=str(FRAMES))
+    return env
+
+
+def test_compose_topology_runs_as_local_processes(tmp_path):
+    import threading
+
+    import zenoh
+
+    from services.cli.service import SERVICES
+    from services.common import codec, topics
+    from services.common.runtime import RuntimeConfig, open_session
+    from tests.netutil import endpoint, free_port, port_open, start, stop, wait_for
+
+    missing = [name for name in PIPELINE if name not in SERVICES]
+    if missing:
+        pytest.skip(f"`gridslam service` does not offer {', '.join(missing)} yet")
+    robot_env = read_env_file(ROBOT_ENV)
+    port = free_port()
+    # The router container's command, on a loopback port.
+    router = start(["router", "--listen", endpoint(port), "--zenoh-config", str(REPO / "deploy" / "router.json5")])
+    processes = {}
+    session = None
+    try:
+        wait_for(lambda: port_open(port) or router.poll() is not None)
+        assert router.poll() is None, router.communicate()[1]
+        session = open_session(RuntimeConfig(connect=[endpoint(port)], robot=robot_env["GRIDSLAM_RUNTIME_ROBOT"]))
+        poses: list[int] = []
+        lock = threading.Lock()
+
+        def on_pose(sample: zenoh.Sample) -> None:
+            with lock:
+                poses.append(codec.decode(sample.payload.to_bytes(), encoding=str(sample.encoding)).header.seq)
+        subscriber = session.declare_subscriber(topics.key(robot_env["GRIDSLAM_RUNTIME_ROBOT"], "map/pose"), on_pose)
+
+        env = local_environment(robot_env, endpoint(port), tmp_path / "results")
+        for name in PIPELINE:   # each container's command: `gridslam service NAME`, settings from the environment
+            processes[name] = start(["service", name], env=env, cwd=tmp_path)
+
+        def all_frames_mapped():
+            crashed = {name: p.returncode for name, p in processes.items() if name != "source" and p.poll() is not None}
+            assert not crashed, f"services exited: {crashed}"
+            with lock:
+                return set(range(FRAMES)) <= set(poses)
+        wait_for(all_frames_mapped, timeout=180, period=0.5)
+        assert processes["source"].wait(timeout=30) == 0   # every frame acknowledged: the source ends by itself
+        subscriber.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        results = {name: stop(process) for name, process in processes.items()}
+        stop(router)
+    for name, (code, _, err) in results.items():
+        assert code == 0, f"{name}: {err[-2000:]}"
