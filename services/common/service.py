@@ -49,6 +49,7 @@ class Counters:
     stale: int = 0
     replayed: int = 0
     dropped_newest_only: int = 0
+    dropped_busy: int = 0
 
 
 @dataclass
@@ -73,6 +74,7 @@ class Subscription:
     handler: Callable[[Message], None]
     newest_only: bool
     drop_stale: bool
+    sparse: bool
     seq: SeqTracker = field(default_factory=SeqTracker)
     pending: tuple[str, bytes, str] | None = None   # newest_only: the one sample kept
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -83,6 +85,10 @@ class Service:
 
     name: ClassVar[str] = "service"
     idle_timeout: float = 0.1   # seconds the main loop waits for a sample before calling on_idle()
+    # An observer (the viewer) must never push back on the pipeline: where a pipeline service
+    # blocks Zenoh's delivery on a full inbox, an observer drops the sample and counts it.
+    observer: ClassVar[bool] = False
+    inbox_size: ClassVar[int] = INBOX_SIZE
 
     def __init__(self, runtime: RuntimeConfig, instance: str | None = None):
         self.runtime = runtime
@@ -94,7 +100,7 @@ class Service:
         self.last_seq = 0
         self.started = time.monotonic()
         self._stop = threading.Event()
-        self._inbox: queue.Queue[tuple[int, tuple[str, bytes, str] | None]] = queue.Queue(maxsize=INBOX_SIZE)
+        self._inbox: queue.Queue[tuple[int, tuple[str, bytes, str] | None]] = queue.Queue(maxsize=self.inbox_size)
         self._subscriptions: list[Subscription] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._entities: list = []
@@ -113,14 +119,16 @@ class Service:
         """Flush state before the session closes."""
 
     def subscribe(self, topic: str, handler: Callable[[Message], None], *, newest_only: bool = False,
-                  drop_stale: bool = True) -> None:
+                  drop_stale: bool = True, sparse: bool = False) -> None:
         """Call `handler(message)` on the main thread for every valid message on `topic`.
 
         `newest_only` keeps just the latest unhandled sample (a live camera: old frames are
         dropped by design and counted); otherwise every sample is handled, in order, and a full
-        inbox blocks Zenoh's delivery, which pushes back on BLOCK publishers."""
+        inbox blocks Zenoh's delivery, which pushes back on BLOCK publishers. `sparse` topics skip
+        frames by design (map/update, loop/closure, grid/activity): no gap is counted on them,
+        nor on newest-only subscriptions."""
         assert self.session is not None, "subscribe() belongs in setup()"
-        subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale)
+        subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale, sparse or newest_only)
         index = len(self._subscriptions)
         self._subscriptions.append(subscription)
 
@@ -218,7 +226,8 @@ class Service:
 
     def extra_counters(self) -> dict[str, float]:
         """Service-specific counters for the status message (override to add some)."""
-        counters = {"replayed": self.counters.replayed, "dropped_newest_only": self.counters.dropped_newest_only}
+        c = self.counters
+        counters = {"replayed": c.replayed, "dropped_newest_only": c.dropped_newest_only, "dropped_busy": c.dropped_busy}
         return {name: value for name, value in counters.items() if value}
 
     def _serve_once(self) -> None:
@@ -251,7 +260,7 @@ class Service:
                 self.counters.replayed += 1
             log.debug("%s: stale seq %d on %s (outputs replayed: %d)", self.name, seq, key, len(self._outputs.get(seq, ())))
             return
-        if missing:
+        if missing and not subscription.sparse:
             self.counters.gaps += missing
             log.warning("%s: %d frame(s) missing before seq %d on %s", self.name, missing, seq, key)
         self.last_seq = max(self.last_seq, seq)
@@ -262,6 +271,16 @@ class Service:
             self._current_seq = None
 
     def _put(self, entry: tuple[int, tuple[str, bytes, str] | None]) -> None:
+        if self.observer:
+            try:
+                self._inbox.put_nowait(entry)
+            except queue.Full:
+                self.counters.dropped_busy += 1
+                if entry[1] is None:   # a newest-only marker: let the next sample queue a new one
+                    subscription = self._subscriptions[entry[0]]
+                    with subscription.lock:
+                        subscription.pending = None
+            return
         # Blocks Zenoh's delivery thread while the inbox is full: that is the back pressure.
         while not self._stop.is_set():
             try:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import queue
 import socket
 import threading
 import time
@@ -59,11 +58,11 @@ INBOX_SIZE = 4096
 
 class ViewerService(Service):
     name = "viewer"
+    observer = True            # never pushes back on the pipeline (issue 8): a full inbox drops
+    inbox_size = INBOX_SIZE
 
     def __init__(self, runtime: RuntimeConfig, config: ViewerConfig, instance: str | None = None):
         super().__init__(runtime, instance)
-        self._inbox = queue.Queue(maxsize=INBOX_SIZE)
-        self.dropped_busy = 0                   # samples dropped because the inbox was full
         self.config = config
         self.viewer_state = ViewerState(config.params())
         self.lock = threading.Lock()            # guards self.viewer_state (main thread, Zenoh and HTTP threads)
@@ -110,11 +109,11 @@ class ViewerService(Service):
         self.subscribe("egomotion", self.on_egomotion, drop_stale=False)
         self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
         self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
-        self._subscribe_sparse("map/update", self.on_map_update)
-        self._subscribe_sparse("loop/closure", self.on_loop_closure)
-        self._subscribe_sparse("camera/frame", self.on_camera_frame, newest_only=True)
-        self._subscribe_sparse("grid/activity", self.on_grid_activity, newest_only=True)
-        self._subscribe_sparse("view/template", self.on_view_template, newest_only=True)
+        self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
+        self.subscribe("loop/closure", self.on_loop_closure, drop_stale=False, sparse=True)
+        self.subscribe("camera/frame", self.on_camera_frame, newest_only=True, drop_stale=False)
+        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
+        self.subscribe("view/template", self.on_view_template, newest_only=True, drop_stale=False)
         # Status messages of many services share one wildcard and carry no frame sequence of their
         # own, so they bypass the base's per-topic seq check; they are small and once a second.
         self._own_entities += [
@@ -123,30 +122,6 @@ class ViewerService(Service):
                                                          history=True),
         ]
         self._query_snapshot_if_due()
-
-    def _put(self, entry: tuple[int, tuple[str, bytes, str] | None]) -> None:
-        # An observer must never push back on the pipeline (issue 8): where the base blocks
-        # Zenoh's delivery on a full inbox, the viewer drops the sample instead. The seq check
-        # then counts the frames missing as gaps of the viewer (its row on the page).
-        try:
-            self._inbox.put_nowait(entry)
-        except queue.Full:
-            self.dropped_busy += 1
-            if entry[1] is None:   # a newest-only marker: let the next sample queue a new one
-                subscription = self._subscriptions[entry[0]]
-                with subscription.lock:
-                    subscription.pending = None
-
-    def extra_counters(self) -> dict[str, float]:
-        extra = super().extra_counters()
-        return {**extra, "dropped_busy": self.dropped_busy} if self.dropped_busy else extra
-
-    def _subscribe_sparse(self, topic: str, handler, newest_only: bool = False) -> None:
-        """A topic published only when something happens or every few frames (map/update,
-        loop/closure, grid/activity), or taken newest-only here: a jump in its seq is by design,
-        so it is neither counted nor logged as a gap."""
-        self.subscribe(topic, handler, newest_only=newest_only, drop_stale=False)
-        self._subscriptions[-1].seq = _AnySeq()   # the base offers no switch for this (yet)
 
     def teardown(self) -> None:
         for entity in self._own_entities:
@@ -291,14 +266,6 @@ class ViewerService(Service):
         data = encode_camera_jpeg(pixels) if which == "camera" else encode_lattice_png(pixels)
         self._image_cache[which] = (revision, data)
         return data
-
-
-class _AnySeq:
-    """A seq tracker that accepts every seq: no gaps, nothing stale."""
-
-    @staticmethod
-    def check(seq: int) -> tuple[int, bool]:
-        return 0, False
 
 
 def _map_items(message: MapUpdate | MapSnapshot) -> tuple[list[tuple[int, float, float]], list[tuple[int, int, bool]]]:

@@ -303,7 +303,8 @@ def test_camera_frame_message_feeds_a_downsampled_image(viewer):
 
 def test_a_full_inbox_drops_instead_of_pushing_back(viewer):
     # Where the base service blocks Zenoh's delivery on a full inbox, the viewer drops and counts.
-    subscription = Subscription("camera/frame", CameraFrame, lambda message: None, newest_only=True, drop_stale=False)
+    subscription = Subscription("camera/frame", CameraFrame, lambda message: None, newest_only=True, drop_stale=False,
+                                sparse=True)
     viewer._subscriptions.append(subscription)
     for _ in range(INBOX_SIZE):
         viewer._put((0, ("key", b"", "encoding")))
@@ -311,5 +312,5 @@ def test_a_full_inbox_drops_instead_of_pushing_back(viewer):
     viewer._put((0, ("key", b"", "encoding")))
     subscription.pending = ("key", b"newest", "encoding")
     viewer._put((0, None))   # a newest-only marker that does not fit: the next sample must queue a new one
-    assert time.monotonic() - started < 0.05 and viewer.dropped_busy == 2 and subscription.pending is None
+    assert time.monotonic() - started < 0.05 and viewer.counters.dropped_busy == 2 and subscription.pending is None
     assert viewer.status().extra["dropped_busy"] == 2   # shown in the viewer's row on the page
