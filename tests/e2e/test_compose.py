@@ -19,12 +19,17 @@ import re
 import shutil
 import subprocess
 import sys
+import threading
 import tomllib
 from pathlib import Path
 
 import pytest
+import zenoh
 
-from tests.netutil import REPO
+from services.cli.service import SERVICES
+from services.common import codec, topics
+from services.common.runtime import RuntimeConfig, open_session
+from tests.netutil import REPO, endpoint, free_port, port_open, start, stop, wait_for
 
 COMPOSE_FILE = REPO / "docker-compose.yml"
 ROBOT_ENV = REPO / "deploy" / "robot.env"
@@ -238,7 +243,6 @@ def test_estimator_override_changes_only_the_estimator(compose):
 
 def tls_paths_in(config_file: Path) -> set[str]:
     """Certificate paths a shipped Zenoh config refers to."""
-    import zenoh
     tls = json.loads(str(zenoh.Config.from_file(str(config_file))))["transport"]["link"]["tls"]
     return {value for key, value in tls.items() if isinstance(value, str) and value.startswith("/")}
 
@@ -309,15 +313,6 @@ def local_environment(robot_env: dict[str, str], router: str, results: Path) -> 
 
 
 def test_compose_topology_runs_as_local_processes(tmp_path):
-    import threading
-
-    import zenoh
-
-    from services.cli.service import SERVICES
-    from services.common import codec, topics
-    from services.common.runtime import RuntimeConfig, open_session
-    from tests.netutil import endpoint, free_port, port_open, start, stop, wait_for
-
     missing = [name for name in PIPELINE if name not in SERVICES]
     if missing:
         pytest.skip(f"`gridslam service` does not offer {', '.join(missing)} yet")

@@ -7,7 +7,6 @@ import json
 import signal
 import threading
 
-import pytest
 import zenoh
 
 from services.common import codec, topics
