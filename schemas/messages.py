@@ -84,6 +84,8 @@ class ViewTemplate(Message):
     relative_angle: float = Field(description="Rotation between the view and the template from the best shift, radians.")
     matched_frame: int = Field(ge=0, description="Frame at which the matched template was first stored.")
     template_count: int = Field(ge=0, description="Templates stored so far.")
+    loop_closure: bool = Field(
+        False, description="True when this frame confirmed a loop closure, published on loop/closure just before.")
 
 
 class LoopClosure(Message):

@@ -13,6 +13,8 @@ SERVICES: dict[str, str] = {
     "source": "services.source.service",
     "egomotion": "services.egomotion.service",
     "gridcells": "services.gridcells.service",
+    "loopclosure": "services.loopclosure.service",
+    "expmap": "services.expmap.service",
     "viewer": "services.viewer.service",
 }
 

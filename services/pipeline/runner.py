@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 
 STARTUP_TIMEOUT_S = 120.0   # services settle networks and load models before their token appears
 STOP_TIMEOUT_S = 5.0
+MAP_LOG = "experience_map.log"
 
 
 class RunError(GridslamError):
@@ -166,7 +167,7 @@ def has_preset(service: str, preset: str) -> bool:
     return (SERVICES_DIR / service / "presets" / f"{preset}.toml").is_file()
 
 
-def service_args(config: RunConfig, name: str) -> list[str]:
+def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
     """`gridslam service NAME ...` arguments of one service of the run."""
     args = ["service", name, "-e", router_endpoint(config), "--robot", config.robot, "--instance", name]
     if config.config_file is not None:
@@ -179,6 +180,10 @@ def service_args(config: RunConfig, name: str) -> list[str]:
         args += ["--integrator", config.integrator] + (["--decoder", config.decoder] if config.decoder else [])
     if name == "viewer":
         args += ["--http", config.view]
+    if name == "loopclosure":
+        args += ["--out", str(folder)]
+    if name == "expmap":
+        args += ["--store", str(folder / MAP_LOG)]
     return args
 
 
@@ -225,7 +230,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
             router = supervisor.start("router", ["router", "--listen", config.listen])
             wait_port_open(config.listen, router.process)
         for name in stages + (["viewer"] if config.view else []):
-            supervisor.start(name, service_args(config, name))
+            supervisor.start(name, service_args(config, name, folder))
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
         with Recorder(runtime) as recorder:
             _wait_for_services(supervisor, recorder, stages)
