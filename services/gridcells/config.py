@@ -3,6 +3,7 @@ presets in services/gridcells/presets/)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -21,3 +22,5 @@ class GridCellsConfig(BaseModel):
     neurons: int = Field(128, ge=16, le=512, description="Side n of the n×n network.")
     activity_every: int = Field(5, ge=0, description="Publish grid/activity every this many frames (0: never).")
     activity_size: int = Field(64, ge=8, le=512, description="Side of the downsampled activity image.")
+    checkpoint: Path | None = Field(
+        None, description="File the integrator's state is written to after every frame; a restarted service resumes from it.")

@@ -168,6 +168,19 @@ class GridCellIntegrator:
         self._pose = Pose2D(x, y, heading)
         return GridStep(self._pose, (dx, dy), step_length, saturated)
 
+    def checkpoint(self) -> dict:
+        """What evolves from frame to frame (network activity, the last field, pose, counters);
+        restore() on a fresh integrator of the same parameters resumes exactly."""
+        return {"state": self.network.state, "previous": self._previous,
+                "pose": (self._pose.x, self._pose.y, self._pose.heading), "frames": self.frames,
+                "saturations": self.saturations}
+
+    def restore(self, checkpoint: dict) -> None:
+        self.network.state = checkpoint["state"]
+        self._previous = checkpoint["previous"]
+        self._pose = Pose2D(*(float(v) for v in checkpoint["pose"]))
+        self.frames, self.saturations = int(checkpoint["frames"]), int(checkpoint["saturations"])
+
 
 class DeadReckoning:
     """The baseline: the same inputs and heading convention, integrated directly."""
@@ -195,6 +208,13 @@ class DeadReckoning:
         self.frames += 1
         self._pose = Pose2D(self._pose.x + vx, self._pose.y + vy, heading)
         return GridStep(self._pose, (0.0, 0.0), math.hypot(vx, vy), False)
+
+    def checkpoint(self) -> dict:
+        return {"pose": (self._pose.x, self._pose.y, self._pose.heading), "frames": self.frames}
+
+    def restore(self, checkpoint: dict) -> None:
+        self._pose = Pose2D(*(float(v) for v in checkpoint["pose"]))
+        self.frames = int(checkpoint["frames"])
 
 
 def auto_velocity_scale(speeds_m_per_frame, params: NetworkParams = NetworkParams(), target_shift: float = TARGET_SHIFT) -> float:

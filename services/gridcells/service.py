@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+from pathlib import Path
 
 import cv2
 import numpy as np
 
 from schemas import EgoMotion, GridActivity, GridPose, Twist, Vector3
 from services.common.config import load_config
+from services.common.errors import DataError
 from services.common.convert import image_to_msg, planar_pose
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
@@ -31,6 +34,26 @@ def make_integrator(config: GridCellsConfig):
     return GridCellIntegrator(params, decoder=config.decoder, velocity_scale=scale)
 
 
+def save_checkpoint(path: Path, checkpoint: dict, seq: int, stamp: float | None) -> None:
+    """Write atomically (a kill mid-write leaves the previous checkpoint): arrays and numbers only."""
+    arrays = {name: np.asarray(value) for name, value in checkpoint.items() if value is not None}
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as handle:
+        np.savez(handle, seq=seq, stamp=np.nan if stamp is None else stamp, **arrays)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path) -> tuple[dict, int, float | None]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            values = {name: data[name] for name in data.files}
+    except (OSError, ValueError, KeyError) as error:
+        raise DataError(f"{path}: unreadable grid-cell checkpoint ({error}); delete it to start afresh") from None
+    seq, stamp = int(values.pop("seq")), float(values.pop("stamp"))
+    values.setdefault("previous", None)
+    return values, seq, None if np.isnan(stamp) else stamp
+
+
 class GridCellsService(Service):
     name = "gridcells"
 
@@ -40,11 +63,18 @@ class GridCellsService(Service):
         self.integrator = make_integrator(config)
         self.frames = 0
         self.previous_stamp: float | None = None
+        self.resumed_at: int | None = None   # frames up to this one are already integrated
+        if config.checkpoint is not None and config.checkpoint.exists():
+            checkpoint, self.resumed_at, self.previous_stamp = load_checkpoint(config.checkpoint)
+            self.integrator.restore(checkpoint)
+            log.info("gridcells resumed from %s after frame %d", config.checkpoint, self.resumed_at)
 
     def setup(self) -> None:
         self.subscribe("egomotion", self.on_egomotion)
 
     def on_egomotion(self, message: EgoMotion) -> None:
+        if self.resumed_at is not None and message.header.seq <= self.resumed_at:
+            return   # integrated before the restart: the checkpoint holds it
         increment = message.increment
         step = self.integrator.step(increment.forward, increment.left, increment.yaw)
         stamp = message.header.stamp.to_seconds()
@@ -57,6 +87,8 @@ class GridCellsService(Service):
             heading=step.pose.heading, lattice_shift=step.shift, step_length=step.step_length,
             saturated=step.saturated, integrator=self.config.integrator,
         ))
+        if self.config.checkpoint is not None:
+            save_checkpoint(self.config.checkpoint, self.integrator.checkpoint(), message.header.seq, stamp)
         self.frames += 1
         every = self.config.activity_every
         if every and self.config.integrator == "grid" and self.frames % every == 0:
@@ -77,9 +109,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
     parser.add_argument("--velocity-scale", help="network units per metre, or auto (default)")
     parser.add_argument("--preset", help="dataset preset (services/gridcells/presets/)")
+    parser.add_argument("--checkpoint", type=Path, help="state file written every frame; a restart resumes from it")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(GridCellsConfig, "gridcells", preset=args.preset, config_file=args.config, overrides={
-        "integrator": args.integrator, "decoder": args.decoder, "velocity_scale": args.velocity_scale})
+        "integrator": args.integrator, "decoder": args.decoder, "velocity_scale": args.velocity_scale,
+        "checkpoint": args.checkpoint})
     return GridCellsService(runtime, config, args.instance).run()

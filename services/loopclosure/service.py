@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import base64
+import collections
 import csv
 import logging
 from pathlib import Path
+
+import numpy as np
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -13,9 +17,10 @@ from schemas import CameraFrame, LoopClosure, ViewTemplate
 from services.common.config import load_config
 from services.common.convert import image_from_msg
 from services.common.runtime import RuntimeConfig
-from services.common.service import Service
-from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule
-from services.loopclosure.templates import TemplateParams, ViewTemplates
+from services.common.journal import Journal
+from services.common.service import REPLAY_FRAMES, Service
+from services.loopclosure.consistency import Closure, ConsistencyParams, ConsistencyRule
+from services.loopclosure.templates import TemplateParams, ViewMatch, ViewTemplates
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +45,8 @@ class LoopClosureConfig(BaseModel):
     tolerance: int = Field(5, ge=0, description="Frames by which the votes' frame offsets may disagree.")
     recent_frames: int = Field(30, ge=1, description="Templates stored fewer frames ago are not loop closures.")
     out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
+    store: Path | None = Field(
+        None, description="Journal of templates and matches, appended every frame; a restarted service resumes from it.")
 
     def template_params(self) -> TemplateParams:
         return TemplateParams(crop=self.crop, width=self.width, height=self.height, normalisation=self.normalisation,
@@ -65,27 +72,77 @@ class LoopClosureService(Service):
             self.csv_path.parent.mkdir(parents=True, exist_ok=True)
             with open(self.csv_path, "w", newline="") as handle:
                 csv.writer(handle).writerow(CLOSURE_COLUMNS)
+        # Frames already handled (from the journal after a restart), to answer a re-sent frame again.
+        self.recent: collections.OrderedDict[int, tuple[ViewMatch, Closure | None]] = collections.OrderedDict()
+        self.last_frame: int | None = None
+        self.journal = None
+        if config.store is not None:
+            params = config.model_dump(mode="json", exclude={"out", "store"})
+            self.journal = Journal(config.store, {"format": "gridslam-view-templates", "version": 1, "params": params})
+            for record in self.journal.records:
+                self._replay(record)
+            if self.journal.records:
+                log.info("loopclosure resumed from %s: %d frames, %d templates", config.store,
+                         len(self.journal.records), len(self.templates))
 
     def setup(self) -> None:
         self.subscribe("camera/frame", self.on_frame)
 
+    def teardown(self) -> None:
+        if self.journal is not None:
+            self.journal.close()
+
     def on_frame(self, message: CameraFrame) -> None:
         seq = message.header.seq
-        match = self.templates.observe(image_from_msg(message.left), seq)
+        if self.last_frame is not None and seq <= self.last_frame:
+            if seq in self.recent:   # handled before a restart: answer it again from the journal
+                self._publish(message.header, *self.recent[seq])
+            return
+        image = image_from_msg(message.left)
+        match = self.templates.observe(image, seq)
         closure = self.rule.update(seq, match.template_id, match.is_new, match.matched_frame)
         if closure is not None:
             self.closures += 1
             log.info("loop closure confirmed at frame %d: frame %d (template %d), %d votes", seq, closure.matched_frame,
                      closure.matched_template, closure.votes)
-            self.publish("loop/closure", LoopClosure(header=message.header, frame=seq, matched_frame=closure.matched_frame,
-                                                     matched_template=closure.matched_template, votes=closure.votes))
             if self.csv_path is not None:
                 with open(self.csv_path, "a", newline="") as handle:
                     csv.writer(handle).writerow((seq, closure.matched_frame, closure.matched_template, closure.votes))
+        self._publish(message.header, match, closure)
+        # Journaled after publishing: a crash in between re-handles the frame, never loses it.
+        if self.journal is not None:
+            patch = self.templates.patch(match.template_id) if match.is_new else None
+            self.journal.append({"frame": seq, "template": match.template_id, "new": match.is_new,
+                                 "distance": match.distance, "angle": match.relative_angle, "matched_frame": match.matched_frame,
+                                 "shift": match.shift, "patch": base64.b64encode(patch.tobytes()).decode() if patch is not None else None})
+        self._remember(seq, match, closure)
+
+    def _publish(self, header, match: ViewMatch, closure: Closure | None) -> None:
+        if closure is not None:
+            self.publish("loop/closure", LoopClosure(header=header, frame=closure.frame, matched_frame=closure.matched_frame,
+                                                     matched_template=closure.matched_template, votes=closure.votes))
         self.publish("view/template", ViewTemplate(
-            header=message.header, template_id=match.template_id, is_new=match.is_new, distance=match.distance,
+            header=header, template_id=match.template_id, is_new=match.is_new, distance=match.distance,
             relative_angle=match.relative_angle, matched_frame=match.matched_frame, template_count=len(self.templates),
             loop_closure=closure is not None))
+
+    def _replay(self, record: dict) -> None:
+        """Rebuild the templates and the consistency window from one journal record."""
+        frame = record["frame"]
+        if record["new"]:
+            shape = (self.config.height, self.config.width)
+            self.templates.add(np.frombuffer(base64.b64decode(record["patch"]), dtype=np.float32).reshape(shape), frame)
+        match = ViewMatch(record["template"], record["new"], record["distance"], record["angle"], record["matched_frame"],
+                          record["shift"])
+        closure = self.rule.update(frame, match.template_id, match.is_new, match.matched_frame)
+        self.closures += closure is not None
+        self._remember(frame, match, closure)
+
+    def _remember(self, frame: int, match: ViewMatch, closure: Closure | None) -> None:
+        self.last_frame = frame
+        self.recent[frame] = (match, closure)
+        while len(self.recent) > REPLAY_FRAMES:
+            self.recent.popitem(last=False)
 
     def extra_counters(self) -> dict[str, float]:
         return {**super().extra_counters(), "templates": len(self.templates), "loop_closures": self.closures}
@@ -95,9 +152,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", help="view-template parameters for a dataset: synthetic, nubot, kitti, stlucia")
     parser.add_argument("--match-threshold", type=float, help="template match distance threshold")
     parser.add_argument("--out", type=Path, help="folder for loop_closures.csv")
+    parser.add_argument("--store", type=Path, help="journal of templates; a restart resumes from it")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(LoopClosureConfig, "loopclosure", preset=args.preset, config_file=args.config,
-                         overrides={"match_threshold": args.match_threshold, "out": args.out})
+                         overrides={"match_threshold": args.match_threshold, "out": args.out, "store": args.store})
     return LoopClosureService(runtime, config, args.instance).run()

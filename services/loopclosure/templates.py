@@ -104,7 +104,7 @@ class ViewTemplates:
                                  self.frames[template_id], shift)
         else:
             distance = 0.0
-        template_id = self._store(patch, frame)
+        template_id = self.add(patch, frame)
         return ViewMatch(template_id, True, distance, 0.0, frame, 0)
 
     def best_match(self, patch: np.ndarray) -> tuple[int, float, int]:
@@ -133,7 +133,12 @@ class ViewTemplates:
             out[:, i] = np.abs(a - b).reshape(stored.shape[0], -1).mean(axis=1)
         return out
 
-    def _store(self, patch: np.ndarray, frame: int) -> int:
+    def patch(self, template_id: int) -> np.ndarray:
+        """The stored template `template_id` (a copy)."""
+        return self._patches[template_id].copy()
+
+    def add(self, patch: np.ndarray, frame: int) -> int:
+        """Store a template (as made by template_of) seen at `frame`; returns its id."""
         count = len(self.frames)
         if count == self._patches.shape[0]:   # grow geometrically: amortised O(1) per template
             self._patches = np.concatenate([self._patches, np.empty_like(self._patches)])

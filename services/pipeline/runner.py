@@ -33,7 +33,10 @@ log = logging.getLogger(__name__)
 
 STARTUP_TIMEOUT_S = 120.0   # services settle networks and load models before their token appears
 STOP_TIMEOUT_S = 5.0
-MAP_LOG = "experience_map.log"
+RESEND_AFTER_S = 2.0        # a stage restarted by the runner is back within this; then frames in flight go again
+MAP_LOG = "experience_map.log"           # the service state files in the results folder, so that a
+TEMPLATE_LOG = "view_templates.log"      # service the runner restarts resumes where it stopped
+GRID_CHECKPOINT = "gridcells.checkpoint.npz"
 
 
 class RunError(GridslamError):
@@ -177,11 +180,12 @@ def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
     if name == "egomotion" and config.egomotion:
         args += ["--estimator", config.egomotion]
     if name == "gridcells":
-        args += ["--integrator", config.integrator] + (["--decoder", config.decoder] if config.decoder else [])
+        args += ["--integrator", config.integrator, "--checkpoint", str(folder / GRID_CHECKPOINT)]
+        args += ["--decoder", config.decoder] if config.decoder else []
     if name == "viewer":
         args += ["--http", config.view]
     if name == "loopclosure":
-        args += ["--out", str(folder)]
+        args += ["--out", str(folder), "--store", str(folder / TEMPLATE_LOG)]
     if name == "expmap":
         args += ["--store", str(folder / MAP_LOG)]
     return args
@@ -191,7 +195,7 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
             "--source", config.source, "--start", str(start), "--step", str(config.step),
-            "--window", str(config.window), "--ack-topic", ack_topic]
+            "--window", str(config.window), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]
     if config.preset:
@@ -277,8 +281,9 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
         if code == 0:   # the source exits 0 once its last frame is acknowledged
             return
         if code is not None:
-            # Resume after the last acknowledged frame: frames in flight are sent again.
-            resume = config.start if acked is None else acked + config.step
+            # Resume at the last acknowledged frame: the frames in flight are sent again, after
+            # one that every stage has handled (stale for them; it primes a restarted estimator).
+            resume = config.start if acked is None else acked
             supervisor.restart("source", source_args(config, resume, ack_topic))
         for name in stages:
             if supervisor.exited(name) is not None:

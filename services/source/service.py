@@ -81,6 +81,7 @@ class SourceService(Service):
         self.in_flight: collections.OrderedDict[int, CameraFrame] = collections.OrderedDict()
         self.last_progress = time.monotonic()
         self.resent = 0
+        self.primer: CameraFrame | None = None   # the last acknowledged frame
         self.sent = 0
         self.finished = False
         self.next_due = 0.0
@@ -95,14 +96,17 @@ class SourceService(Service):
     def on_ack(self, message: Message) -> None:
         seq = message.header.seq
         while self.in_flight and next(iter(self.in_flight)) <= seq:
-            self.in_flight.popitem(last=False)
+            self.primer = self.in_flight.popitem(last=False)[1]
             self.last_progress = time.monotonic()
 
     def on_idle(self) -> None:
         if self.in_flight and time.monotonic() - self.last_progress > self.config.resend_after:
             log.warning("source: no acknowledgement for %.1f s; sending the %d frames in flight again (from %d)",
                         self.config.resend_after, len(self.in_flight), next(iter(self.in_flight)))
-            for message in self.in_flight.values():
+            # The last acknowledged frame goes first: every stage has handled it (they drop it or
+            # replay their output), and an estimator restarted downstream takes it as its previous
+            # frame, so the first frame in flight gets its true motion, not a first-frame zero.
+            for message in ([self.primer] if self.primer is not None else []) + list(self.in_flight.values()):
                 self.publish("camera/frame", message)
             self.resent += len(self.in_flight)
             self.last_progress = time.monotonic()

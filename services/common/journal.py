@@ -1,0 +1,91 @@
+"""An append-only journal of JSON records, one per line as `JSON<TAB>CRC32`, flushed as written
+so a killed process leaves every record it wrote on disk. Services keep their inputs (or their
+decisions) in one and rebuild their state by replaying it after a restart.
+
+The first line is a header (format, version, parameters); reopening with another header is an
+error, since replaying under other parameters would build another state. A torn last record
+(the process died mid-write: no newline, or a bad checksum) is reported with a warning and cut
+off; a damaged record anywhere else is an error naming the file and line.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import zlib
+from pathlib import Path
+
+from services.common.errors import DataError
+
+log = logging.getLogger(__name__)
+
+
+class JournalError(DataError):
+    """A journal that cannot be read or written (the message names the file and line)."""
+
+
+def _line(record: dict) -> str:
+    text = json.dumps(record, separators=(",", ":"), allow_nan=False)
+    return f"{text}\t{zlib.crc32(text.encode()):08x}\n"
+
+
+class Journal:
+    """Opens (or creates) a journal; `records` holds the records already in it (header excluded)."""
+
+    def __init__(self, path: Path, header: dict):
+        self.path = Path(path)
+        self.records: list[dict] = []
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.path.exists() and self.path.stat().st_size > 0:
+                self._load(header)
+            else:
+                with open(self.path, "w") as handle:
+                    handle.write(_line(header))
+            self.handle = open(self.path, "a")
+        except OSError as error:
+            raise JournalError(f"{self.path}: cannot open ({error.strerror})") from None
+
+    def append(self, record: dict) -> None:
+        try:
+            self.handle.write(_line(record))
+            self.handle.flush()
+        except OSError as error:
+            raise JournalError(f"{self.path}: cannot append ({error.strerror})") from None
+        self.records.append(record)
+
+    def close(self) -> None:
+        try:
+            self.handle.flush()
+            os.fsync(self.handle.fileno())
+        except OSError as error:
+            log.error("%s: could not flush: %s", self.path, error.strerror)
+        finally:
+            self.handle.close()
+
+    def _load(self, header: dict) -> None:
+        with open(self.path, "rb") as handle:
+            lines = handle.read().split(b"\n")
+        complete, tail = lines[:-1], lines[-1]   # the part after the last newline is torn, if any
+        good = 0
+        for number, raw in enumerate(complete, start=1):
+            text, tab, crc = raw.decode("utf-8", errors="replace").rpartition("\t")
+            if not tab or f"{zlib.crc32(text.encode()):08x}" != crc:
+                if number == len(complete) and not tail:
+                    log.warning("%s: line %d: torn last record skipped (a crash while writing)", self.path, number)
+                    break
+                raise JournalError(f"{self.path}: line {number}: record is damaged (checksum mismatch)")
+            record = json.loads(text)
+            if number == 1:
+                if record != header:
+                    raise JournalError(f"{self.path}: written with {record}, not {header}; "
+                                       "use another file or the same parameters")
+            else:
+                self.records.append(record)
+            good += len(raw) + 1
+        if tail:
+            log.warning("%s: torn last record skipped (a crash while writing; %d bytes)", self.path, len(tail))
+        if good < self.path.stat().st_size:
+            with open(self.path, "r+b") as handle:
+                handle.truncate(good)
