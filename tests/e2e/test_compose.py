@@ -30,6 +30,7 @@ from services.cli.service import SERVICES
 from services.common import codec, topics
 from services.common.runtime import RuntimeConfig, open_session
 from tests.netutil import REPO, endpoint, free_port, port_open, start, stop, wait_for
+from tests.tlsutil import CLIENT_MTLS, client_runtime, make_certs, tls_endpoint
 
 COMPOSE_FILE = REPO / "docker-compose.yml"
 ROBOT_ENV = REPO / "deploy" / "robot.env"
@@ -216,15 +217,19 @@ def test_compose_resolves_to_the_documented_topology(compose):
             continue
         robot = "b" if name.endswith("-b") else "robot0"
         assert service["command"] == ["service", role_of(name)], name
-        assert service["environment"] == {**robot_env, "GRIDSLAM_RUNTIME_ROBOT": robot}, name
+        # robot.env, with robot b's name and its own folder on the results volume
+        expected = {key: value.replace("/results/robot0/", f"/results/{robot}/") for key, value in robot_env.items()}
+        assert service["environment"] == {**expected, "GRIDSLAM_RUNTIME_ROBOT": robot}, name
         assert "router" in service["depends_on"], name
         assert service.get("profiles", []) == (["robot-b"] if robot == "b" else []), name
         assert robot_env["GRIDSLAM_RUNTIME_CONNECT"] == "tcp/router:7447"
 
     for name in ("source", "source-b"):
         assert volumes_of(services[name])["/data"][1], "the dataset must be mounted read-only"
-    for name in ("expmap", "expmap-b"):
+    for name in ("loopclosure", "loopclosure-b", "expmap", "expmap-b"):
         assert volumes_of(services[name])["/results"] == ("results", False)
+    stores = [value for key, value in robot_env.items() if key.endswith("_STORE")]
+    assert stores and all(value.startswith("/results/robot0/") for value in stores)
     assert ("127.0.0.1", 8080, 8080) in ports_of(services["viewer"])
     assert ("127.0.0.1", 8081, 8080) in ports_of(services["viewer-b"])
     assert robot_env["GRIDSLAM_VIEWER_HTTP"].endswith(":8080")
@@ -300,6 +305,7 @@ def test_image_install_ships_every_data_file():
 
 # --------------------------------------------------------------------------- the same topology, as processes
 FRAMES = 30   # a short run: the pipeline, not the dataset, is under test
+CONTAINER_TLS = "/etc/gridslam/tls"   # where deploy/compose/secure.yml mounts each container's certificates
 
 
 def local_environment(robot_env: dict[str, str], router: str, results: Path) -> dict[str, str]:
@@ -312,31 +318,58 @@ def local_environment(robot_env: dict[str, str], router: str, results: Path) -> 
     return env
 
 
-def test_compose_topology_runs_as_local_processes(tmp_path):
+def mounted_config(shipped: Path, certs: Path, role: str, out: Path) -> Path:
+    """A shipped Zenoh config as a container of `role` sees it under secure.yml: the mounted
+    CA, node.pem and node.key replaced by that role's files in `certs`."""
+    text = shipped.read_text()
+    for mounted, local in (("ca.pem", "ca.pem"), ("node.pem", f"{role}.pem"), ("node.key", f"{role}.key")):
+        text = text.replace(f"{CONTAINER_TLS}/{mounted}", str(certs / local))
+    out.write_text(text)
+    return out
+
+
+@pytest.mark.parametrize("secure", [False, True], ids=["tcp", "mutual-tls-acl"])
+def test_compose_topology_runs_as_local_processes(tmp_path, secure):
+    """docker-compose.yml (and with `secure`, deploy/compose/secure.yml) as local processes: each
+    service is `gridslam service NAME` configured by deploy/robot.env alone, all started at
+    once as compose does, and every frame reaches map/pose."""
     missing = [name for name in PIPELINE if name not in SERVICES]
     if missing:
         pytest.skip(f"`gridslam service` does not offer {', '.join(missing)} yet")
     robot_env = read_env_file(ROBOT_ENV)
+    robot = robot_env["GRIDSLAM_RUNTIME_ROBOT"]
     port = free_port()
     # The router container's command, on a loopback port.
-    router = start(["router", "--listen", endpoint(port), "--zenoh-config", str(REPO / "deploy" / "router.json5")])
+    if secure:
+        certs = make_certs(tmp_path / "certs")
+        acl = mounted_config(REPO / "deploy" / "acl" / "router.json5", certs, "router", tmp_path / "router.json5")
+        router = start(["router", "--listen", tls_endpoint(port, "127.0.0.1"), "--zenoh-config", str(acl)])
+        connect = tls_endpoint(port)
+        observer_runtime = client_runtime(port, CLIENT_MTLS, certs, "observer")
+    else:
+        router = start(["router", "--listen", endpoint(port), "--zenoh-config", str(REPO / "deploy" / "router.json5")])
+        connect = endpoint(port)
+        observer_runtime = RuntimeConfig(connect=[connect])
     processes = {}
     session = None
     try:
         wait_for(lambda: port_open(port) or router.poll() is not None)
         assert router.poll() is None, router.communicate()[1]
-        session = open_session(RuntimeConfig(connect=[endpoint(port)], robot=robot_env["GRIDSLAM_RUNTIME_ROBOT"]))
+        session = open_session(observer_runtime.model_copy(update={"robot": robot}))
         poses: list[int] = []
         lock = threading.Lock()
 
         def on_pose(sample: zenoh.Sample) -> None:
             with lock:
                 poses.append(codec.decode(sample.payload.to_bytes(), encoding=str(sample.encoding)).header.seq)
-        subscriber = session.declare_subscriber(topics.key(robot_env["GRIDSLAM_RUNTIME_ROBOT"], "map/pose"), on_pose)
+        subscriber = session.declare_subscriber(topics.key(robot, "map/pose"), on_pose)
 
-        env = local_environment(robot_env, endpoint(port), tmp_path / "results")
+        env = local_environment(robot_env, connect, tmp_path / "results")
         for name in PIPELINE:   # each container's command: `gridslam service NAME`, settings from the environment
-            processes[name] = start(["service", name], env=env, cwd=tmp_path)
+            own = dict(env)
+            if secure:   # secure.yml's two variables, and this service's own certificate
+                own["GRIDSLAM_RUNTIME_ZENOH_CONFIG"] = str(mounted_config(CLIENT_MTLS, certs, name, tmp_path / f"{name}.json5"))
+            processes[name] = start(["service", name], env=own, cwd=tmp_path)
 
         def all_frames_mapped():
             crashed = {name: p.returncode for name, p in processes.items() if name != "source" and p.poll() is not None}
