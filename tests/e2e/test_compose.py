@@ -386,3 +386,6 @@ def test_compose_topology_runs_as_local_processes(tmp_path, secure):
         stop(router)
     for name, (code, _, err) in results.items():
         assert code == 0, f"{name}: {err[-2000:]}"
+    # The journals went where robot.env puts them on the results volume.
+    stores = [Path(value) for name, value in env.items() if name.endswith("_STORE")]
+    assert stores and all(path.is_relative_to(tmp_path / "results" / robot) and path.is_file() for path in stores), stores
