@@ -194,7 +194,7 @@ def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
 def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
-            "--source", config.source, "--start", str(start), "--step", str(config.step),
+            "--source", config.source, "--start", str(start), "--origin", str(config.start), "--step", str(config.step),
             "--window", str(config.window), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]

@@ -197,6 +197,7 @@ class KittiSequence(IndexedSource):
         fps: float = DEFAULT_FPS,
         grey: bool = False,
         mono: bool = False,
+        origin: int | None = None,
     ):
         folder = _kitti_sequence_folder(Path(path))
         if (folder / "image_0").is_dir():
@@ -227,7 +228,9 @@ class KittiSequence(IndexedSource):
             self._poses[:, :3, :] = rows.reshape(count, 3, 4)
         seqs = range(min(self._left), count)
         selected = seqs[start:stop:step]
-        self._anchor = np.linalg.inv(self._poses[selected[0]]) if self._poses is not None and selected else np.eye(4)
+        # Ground truth is relative to `origin` (a source restarted mid-run keeps its run's origin).
+        anchor = origin if origin is not None else (selected[0] if selected else None)
+        self._anchor = np.linalg.inv(self._poses[anchor]) if self._poses is not None and anchor is not None else np.eye(4)
         super().__init__(str(folder), seqs, camera, start, stop, step)
 
     def _read(self, seq: int) -> Frame:

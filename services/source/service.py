@@ -40,6 +40,9 @@ class SourceConfig(BaseModel):
     calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
     mono: bool = Field(False, description="Publish only the left image of a stereo source.")
     start: int = Field(0, ge=0, description="First frame index.")
+    origin: int | None = Field(
+        None, ge=0, description="Frame whose camera pose is the ground truth's origin (default: the first frame sent); "
+                                "a source restarted mid-run keeps the run's origin.")
     stop: int | None = Field(None, ge=0, description="Frame index to stop before (default: the end).")
     step: int = Field(1, ge=1, description="Take every step-th frame.")
     rate: float = Field(0.0, ge=0.0, description="Frames per second to publish at; 0: as fast as the window allows.")
@@ -173,6 +176,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibration", type=Path, help="calibration TOML file")
     parser.add_argument("--mono", action="store_true", default=None, help="publish only the left image")
     parser.add_argument("--start", type=int, help="first frame index")
+    parser.add_argument("--origin", type=int, help="frame whose pose is the ground truth's origin (default: --start)")
     parser.add_argument("--stop", type=int, help="frame index to stop before")
     parser.add_argument("--step", type=int, help="take every step-th frame")
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
@@ -182,10 +186,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
-    fields = ("source", "preset", "calibration", "mono", "start", "stop", "step", "rate", "window", "ack_topic",
+    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "ack_topic",
               "resend_after")
     config = load_config(SourceConfig, "source", config_file=args.config,
                          overrides={name: getattr(args, name) for name in fields})
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
-                         calibration=config.calibration, mono=config.mono)
+                         calibration=config.calibration, mono=config.mono, origin=config.origin)
     return SourceService(runtime, config, frames, args.instance).run()

@@ -100,10 +100,12 @@ def open_source(
     preset: str | Path | None = None,
     calibration: str | Path | Camera | None = None,
     mono: bool = False,
+    origin: int | None = None,
 ) -> FrameSource:
     """Open the source named by ``spec`` (module docstring) with frames ``start:stop:step``.
 
     ``mono`` drops the right image of stereo sources (less to read for monocular estimators).
+    ``origin``: the frame whose pose is the ground truth's origin (default: the first selected).
     Raises SourceError (bad spec or data) or ConfigError (bad preset) with one line naming the file.
     """
     kind, target = parse_spec(spec)
@@ -124,6 +126,8 @@ def open_source(
 
         loader = {"kitti": datasets.KittiSequence, "stereo": datasets.StereoFolder, "images": datasets.ImageFolder}[kind]
         extra = {"mono": mono} if kind != "images" else {}
+        if kind == "kitti":
+            extra["origin"] = origin
         return loader(target, camera=camera, fps=fps or datasets.DEFAULT_FPS, grey=grey, **selection, **extra)
     if kind == "video":
         from services.source.datasets import VideoFile
@@ -143,4 +147,4 @@ def open_source(
     config = WorldConfig(seed=seed, **settings)
     if fps is not None:
         config = dataclasses.replace(config, fps=fps)
-    return SyntheticWorld(config, camera=camera, mono=mono, **selection)
+    return SyntheticWorld(config, camera=camera, mono=mono, origin=origin, **selection)

@@ -268,6 +268,7 @@ class SyntheticWorld(IndexedSource):
         start: int = 0,
         stop: int | None = None,
         step: int = 1,
+        origin: int | None = None,
     ):
         config.check()
         self.config = config
@@ -287,7 +288,9 @@ class SyntheticWorld(IndexedSource):
         self._prepare_camera(camera)
         self._step = step
         selected = range(len(self._poses))[start:stop:step]
-        self._anchor = np.linalg.inv(self.camera_matrix(selected[0])) if selected else np.eye(4)
+        # Ground truth is relative to `origin` (a source restarted mid-run keeps its run's origin).
+        anchor = origin if origin is not None else (selected[0] if selected else None)
+        self._anchor = np.linalg.inv(self.camera_matrix(anchor)) if anchor is not None else np.eye(4)
         super().__init__(f"synthetic:{config.seed}", range(len(self._poses)), camera, start, stop, step)
 
     # --- geometry ------------------------------------------------------------------
