@@ -336,7 +336,7 @@ def test_image_install_ships_every_data_file():
 
 
 # --------------------------------------------------------------------------- the same topology, as processes
-FRAMES = 30   # a short run: the pipeline, not the dataset, is under test
+FRAMES = 20   # a short run (over two flow-control windows): the pipeline, not the dataset, is under test
 CONTAINER_TLS = "/etc/gridslam/tls"   # where deploy/compose/secure.yml mounts each container's certificates
 
 
