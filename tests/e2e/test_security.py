@@ -163,6 +163,10 @@ def test_health_lists_services_only_for_the_operator(gridcells, certs):
     try:
         assert not [r for r in observer.liveliness().get(f"{topics.PREFIX}/{ROBOT}/health/**", timeout=1) if r.ok]
         assert not [r for r in observer.get(f"{topics.PREFIX}/{ROBOT}/status/**", timeout=1) if r.ok]
+        # nor the router's admin space (a session answers `@/**` about itself only)
+        routers = {str(zid) for zid in observer.info.routers_zid()}
+        admin = {str(r.ok.key_expr).split("/")[1] for r in observer.get("@/**", timeout=1) if r.ok}
+        assert routers and not admin & routers, admin
     finally:
         observer.close()
 
