@@ -12,6 +12,7 @@ BENCHMARKS: dict[str, str] = {
     "egomotion": "services.egomotion.bench",
     "viewer": "services.viewer.bench",
     "pipeline": "services.pipeline.bench",
+    "loopclosure": "services.loopclosure.bench",
 }
 
 

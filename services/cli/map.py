@@ -1,0 +1,166 @@
+"""`gridslam map`: the experience map offline.
+
+- `map export STORE`: rebuild a persisted map from its log and write the graph (JSON) and the
+  corrected per-frame trajectory (TUM).
+- `map build`: view templates, loop closures and the experience map over an image folder and
+  a motion file, in one process (the evidence of docs/mapping.md).
+- `map sweep`: `map build` over several match thresholds and tolerances, as a Markdown table.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from services.common.config import SERVICES_DIR, load_config
+from services.common.errors import ConfigError
+from services.evaluation.results import format_table
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("map", help="export a persisted experience map; build one offline from images and odometry")
+    commands = parser.add_subparsers(dest="map_command", metavar="SUBCOMMAND", required=True)
+
+    export = commands.add_parser("export", help="rebuild a map from its log; write the graph (JSON) and the corrected trajectory (TUM)")
+    export.add_argument("store", type=Path, help="the map log (experience_map.log of a run)")
+    export.add_argument("--graph", type=Path, help="graph JSON to write (default: STORE with .graph.json)")
+    export.add_argument("--tum", type=Path, help="TUM trajectory to write (default: STORE with .tum)")
+    _add_params(export, "map parameters (default: those the log was written with; given ones must match it)")
+    export.set_defaults(func=run_export)
+
+    for name, help_text in (("build", "build a map offline from an image folder and a motion file"),
+                            ("sweep", "build offline maps over several match thresholds and tolerances (Markdown table)")):
+        command = commands.add_parser(name, help=help_text)
+        command.add_argument("--images", type=Path, required=True, help="folder of images (e.g. nubot_scene1/left)")
+        command.add_argument("--odometry", type=Path, required=True,
+                             help="motion file, one row per image (e.g. nubot_scene1/libviso2_egomotion.csv)")
+        command.add_argument("--integrator", choices=["deadreckoning", "grid"], default="deadreckoning",
+                             help="how the motion is integrated (grid: the network, with the gridcells preset's speed)")
+        command.add_argument("--noise-rot-deg", type=float, default=0.0, help="add Gaussian yaw noise per frame, degrees")
+        command.add_argument("--noise-trans", type=float, default=0.0, help="add Gaussian translation noise, fraction of each step")
+        command.add_argument("--seed", type=int, default=0, help="noise seed")
+        command.add_argument("--n-frames", type=int, help="only the first N images")
+        command.add_argument("--same-place-radius", type=float, default=1.0,
+                             help="a closure between frames whose odometric positions are farther apart is counted as false (m)")
+        _add_params(command, "loopclosure, expmap and gridcells parameters")
+        if name == "build":
+            command.add_argument("--match-threshold", type=float, help="override the template match threshold")
+            command.add_argument("--tolerance", type=int, help="override the consistency tolerance (frames)")
+            command.add_argument("--out", type=Path, required=True, help="folder for the results")
+            command.add_argument("--title", default="", help="title of the plots")
+            command.set_defaults(func=run_build)
+        else:
+            command.add_argument("--thresholds", default="0.05,0.06,0.08,0.1,0.12,0.13,0.15,0.2",
+                                 help="comma-separated match thresholds")
+            command.add_argument("--tolerances", default="5,6", help="comma-separated consistency tolerances (frames)")
+            command.set_defaults(func=run_sweep)
+
+
+def _add_params(parser, what: str) -> None:
+    parser.add_argument("--preset", help=f"{what}: a dataset preset (synthetic, nubot, kitti, stlucia)")
+    parser.add_argument("-c", "--config", type=Path, help=f"{what}: a gridslam TOML config file ([expmap], [loopclosure], ...)")
+
+
+def _config(model, section: str, args, overrides=None):
+    preset = args.preset if args.preset and (SERVICES_DIR / section / "presets" / f"{args.preset}.toml").is_file() else None
+    return load_config(model, section, preset=preset, config_file=args.config, overrides=overrides)
+
+
+def run_export(args) -> int:
+    from services.expmap.export import export_map
+    from services.expmap.service import ExpMapConfig
+
+    params = _config(ExpMapConfig, "expmap", args).params() if (args.preset or args.config) else None
+    graph = args.graph or args.store.with_suffix(".graph.json")
+    tum = args.tum or args.store.with_suffix(".tum")
+    result = export_map(args.store, graph, tum, params)
+    summary = result.summary()
+    print(format_table([("frames", summary["frames"], ""), ("experiences", summary["experiences"], ""),
+                        ("links", summary["links"], ""), ("loop-closure links", summary["loop_closure_links"], ""),
+                        ("torn last record skipped", summary["torn_last_record"], "")]))
+    for name, path in result.files.items():
+        print(f"{name}: {path}")
+    return 0
+
+
+def _inputs(args):
+    """Images, odometry and the three services' parameters of a build or sweep."""
+    from services.expmap.evidence import odometry_from_motion
+    from services.expmap.service import ExpMapConfig
+    from services.gridcells.config import GridCellsConfig
+    from services.gridcells.integrator import auto_velocity_scale
+    from services.gridcells.network import NetworkParams
+    from services.loopclosure.service import LoopClosureConfig
+    from services.source.datasets import ImageFolder
+
+    if not (args.same_place_radius > 0 and math.isfinite(args.same_place_radius)):
+        raise ConfigError(f"--same-place-radius must be a positive number of metres, got {args.same_place_radius}")
+    overrides = {name: getattr(args, name, None) for name in ("match_threshold", "tolerance")}
+    loopclosure = _config(LoopClosureConfig, "loopclosure", args, overrides)
+    expmap = _config(ExpMapConfig, "expmap", args)
+    gridcells = _config(GridCellsConfig, "gridcells", args)
+    params = NetworkParams(n=gridcells.neurons)
+    scale = (auto_velocity_scale(np.array([gridcells.typical_speed]), params) if gridcells.velocity_scale == "auto"
+             else float(gridcells.velocity_scale))
+    odometry = odometry_from_motion(args.odometry, args.integrator, gridcells.decoder, scale, args.noise_trans,
+                                    args.noise_rot_deg, args.seed)
+    # Closures are judged on the noiseless dead reckoning of the motion file.
+    reference = odometry_from_motion(args.odometry) if (args.noise_trans or args.noise_rot_deg) else None
+    images = ImageFolder(args.images, stop=args.n_frames, grey=True)
+    config = {"images": args.images, "odometry": args.odometry, "integrator": args.integrator,
+              "noise_trans": args.noise_trans, "noise_rot_deg": args.noise_rot_deg, "seed": args.seed,
+              "same_place_radius": args.same_place_radius, "loopclosure": loopclosure.model_dump(mode="json"),
+              "expmap": expmap.model_dump(mode="json"), "gridcells": gridcells.model_dump(mode="json") if args.integrator == "grid" else None}
+    return images, odometry, reference, loopclosure, expmap, config
+
+
+def run_build(args) -> int:
+    from services.expmap.evidence import build_map, write_build
+
+    images, odometry, reference, loopclosure, expmap, config = _inputs(args)
+    args.out.mkdir(parents=True, exist_ok=True)
+    store = args.out / "experience_map.log"
+    if store.exists():
+        store.unlink()   # a build starts a new map (the log is the map's record, not an input)
+    run = build_map(images, odometry, loopclosure.template_params(), loopclosure.consistency_params(), expmap.params(), store, reference)
+    files = write_build(args.out, run, args.same_place_radius, config, args.title)
+    summary = run.summary(args.same_place_radius)
+    first = summary["first_confirmed"]
+    print(format_table([
+        ("frames", summary["frames"], ""), ("view templates", summary["view_templates"], ""),
+        ("experiences", summary["experiences"], ""), ("links (loop closure)", f"{summary['links']} ({summary['loop_closure_links']})", ""),
+        ("possible closures", summary["possible_closures"], ""),
+        ("possible closures elsewhere", summary["possible_closures_elsewhere"], f"> {args.same_place_radius:g} m"),
+        ("confirmed closures", summary["confirmed_closures"], ""),
+        ("confirmed closures elsewhere", summary["confirmed_closures_elsewhere"], f"> {args.same_place_radius:g} m"),
+        ("first confirmed", f"frame {first['frame']} ↔ frame {first['matched_frame']}" if first else "-", ""),
+        ("confirmed at frames", "{}..{}".format(*summary["confirmed_frames"]) if first else "-", ""),
+        ("matched frames", ",".join(map(str, summary["matched_frames"])) or "-", ""),
+        ("odometry end-to-start gap", summary["odometry_end_to_start_m"], "m"),
+        ("corrected end-to-start gap", summary["corrected_end_to_start_m"], "m"),
+    ] + [(f"{name.removesuffix('_m').replace('_', ' ')} ({stat}, SE(2))", value, "m") for name in ("odometry_error_vs_reference_m", "corrected_error_vs_reference_m")
+         if name in summary for stat, value in summary[name].items() if stat != "rmse"]))
+    print(f"results: {args.out} ({', '.join(sorted(p.name for p in files.values()))}, {store.name})")
+    return 0
+
+
+def run_sweep(args) -> int:
+    from services.expmap.evidence import sweep
+
+    try:
+        thresholds = [float(v) for v in args.thresholds.split(",") if v.strip()]
+        tolerances = [int(v) for v in args.tolerances.split(",") if v.strip()]
+    except ValueError:
+        raise ConfigError(f"--thresholds {args.thresholds!r} / --tolerances {args.tolerances!r}: comma-separated numbers expected") from None
+    images, odometry, reference, loopclosure, expmap, _ = _inputs(args)
+    images = list(images)   # read once, matched many times
+    rows = sweep(images, odometry, loopclosure.template_params(), loopclosure.consistency_params(), expmap.params(),
+                 thresholds, tolerances, args.same_place_radius, reference)
+    header = list(rows[0]) if rows else []
+    print("| " + " | ".join(header) + " |")
+    print("|" + "|".join("---:" for _ in header) + "|")
+    for row in rows:
+        print("| " + " | ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in row.values()) + " |")
+    return 0

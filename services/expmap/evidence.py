@@ -1,0 +1,344 @@
+"""The loop-closure and experience-map stages offline, on an image folder and a motion file:
+the same cores as the services (view templates, the paper's consistency rule, the experience
+map and its log) driven frame by frame in one process, so a dataset's evidence (docs/mapping.md)
+is reproducible without a Zenoh network: the paper's Fig. 10 (template and experience ids over
+frames), the confirmed closures, the map before and after correction, and a sweep of the match
+threshold that shows which closures the consistency rule rejects.
+
+A closure is judged against a reference path (by default the odometry): it is true when the
+two frames' reference positions are within `same_place_radius` metres. NuBot has no ground
+truth, but its LIBVISO2 loop ends 0.13 m from its start, so its dead reckoning tells places
+apart far better than a metre; when noise is added to the map's odometry, the closures are
+still judged on the noiseless dead reckoning.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from services.common.errors import DataError
+from services.evaluation import metrics
+from services.evaluation.results import write_json
+from services.evaluation.trajectory import Trajectory, write_tum
+from services.expmap.export import graph_dict
+from services.expmap.graph import ExperienceMap, Link, MapParams
+from services.expmap.store import MapStore, Step
+from services.gridcells.motion_io import add_noise, load_motion
+from services.gridcells.offline import run_deadreckoning, run_grid
+from services.loopclosure.consistency import Closure, ConsistencyParams, ConsistencyRule
+from services.loopclosure.templates import TemplateParams, ViewTemplates
+
+log = logging.getLogger(__name__)
+
+DPI = 120
+CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "odometry_distance_m", "same_place")
+FRAME_COLUMNS = ("frame", "template_id", "is_new", "distance", "matched_frame", "possible_closure", "loop_closure", "experience")
+
+
+class EvidenceError(DataError):
+    """Inputs of an offline map build that do not fit together."""
+
+
+@dataclass(frozen=True, eq=False)
+class MapState:
+    """Experience poses (E, 3) and links at one moment."""
+
+    poses: np.ndarray
+    links: list[Link]
+
+
+@dataclass(eq=False)
+class OfflineMap:
+    """Everything an offline build saw, per frame, and the final map."""
+
+    frames: np.ndarray              # (N,) frame indices
+    stamps: np.ndarray              # (N,) s
+    odometry: np.ndarray            # (N, 3) x, y, heading: the map's input
+    template_ids: np.ndarray        # (N,)
+    is_new: np.ndarray              # (N,) bool
+    distances: np.ndarray           # (N,) match distance
+    matched_frames: np.ndarray      # (N,) frame at which the matched template was stored
+    possible: np.ndarray            # (N,) bool: a match of a non-recent template (a possible closure)
+    experiences: np.ndarray         # (N,) the experience the robot is at
+    closures: list[Closure]
+    experience_map: ExperienceMap
+    template_count: int
+    before: MapState | None = None  # the map just before the first loop-closure link
+    reference: Trajectory | None = None   # (N poses) the path closures are judged on (None: the odometry)
+    files: dict[str, Path] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._row = {int(f): i for i, f in enumerate(self.frames)}
+
+    def odometry_distance(self, frame: int, matched_frame: int) -> float:
+        """Distance between where two frames were taken on the reference path, m."""
+        positions = self.odometry if self.reference is None else self.reference.positions
+        a, b = positions[self._row[frame]], positions[self._row[matched_frame]]
+        return float(math.hypot(a[0] - b[0], a[1] - b[1]))
+
+    def odometry_trajectory(self) -> Trajectory:
+        return Trajectory.from_planar(self.stamps, self.odometry[:, 0], self.odometry[:, 1], self.odometry[:, 2])
+
+    def corrected_trajectory(self) -> Trajectory:
+        rows = np.array(self.experience_map.trajectory())
+        return Trajectory.from_planar(self.stamps, rows[:, 1], rows[:, 2], rows[:, 3])
+
+    def closure_rows(self, radius: float) -> list[dict]:
+        rows = []
+        for closure in self.closures:
+            distance = self.odometry_distance(closure.frame, closure.matched_frame)
+            rows.append({"frame": closure.frame, "matched_frame": closure.matched_frame,
+                         "matched_template": closure.matched_template, "votes": closure.votes,
+                         "odometry_distance_m": distance, "same_place": distance <= radius})
+        return rows
+
+    def summary(self, radius: float) -> dict:
+        """Counts and closures; "elsewhere" means between frames more than `radius` apart."""
+        possible = [(int(f), int(m)) for f, m, p in zip(self.frames, self.matched_frames, self.possible) if p]
+        possible_far = [(f, m) for f, m in possible if self.odometry_distance(f, m) > radius]
+        rows = self.closure_rows(radius)
+        true_rows = [row for row in rows if row["same_place"]]
+        odometry, corrected = self.odometry_trajectory(), self.corrected_trajectory()
+        links = self.experience_map.links
+        errors = {}
+        if self.reference is not None:   # e.g. noisy odometry against the noiseless path (SE(2)-aligned)
+            for name, traj in (("odometry", odometry), ("corrected", corrected)):
+                ate = metrics.ate(traj, self.reference, align="se2")
+                errors[f"{name}_error_vs_reference_m"] = {"mean": ate["mean"], "max": ate["max"], "rmse": ate["rmse"]}
+        return errors | {
+            "frames": len(self.frames),
+            "view_templates": self.template_count,
+            "experiences": len(self.experience_map),
+            "links": len(links),
+            "loop_closure_links": sum(link.loop_closure for link in links),
+            "possible_closures": len(possible),
+            "possible_closures_elsewhere": len(possible_far),
+            "possible_closures_elsewhere_frames": possible_far,
+            "confirmed_closures": len(rows),
+            "confirmed_closures_elsewhere": len(rows) - len(true_rows),
+            "first_confirmed": rows[0] if rows else None,
+            "confirmed_frames": [min((r["frame"] for r in rows), default=None), max((r["frame"] for r in rows), default=None)],
+            "matched_frames": sorted({r["matched_frame"] for r in rows}),
+            "same_place_radius_m": radius,
+            "odometry_end_to_start_m": _gap(odometry),
+            "corrected_end_to_start_m": _gap(corrected),
+            "odometry_path_m": odometry.path_length(),
+            "corrected_path_m": corrected.path_length(),
+        }
+
+
+def _gap(traj: Trajectory) -> float:
+    return float(np.linalg.norm(traj.positions[-1] - traj.positions[0]))
+
+
+def odometry_from_motion(path, integrator: str = "deadreckoning", decoder: str = "subpixel", velocity_scale: float = 1.0,
+                         noise_trans: float = 0.0, noise_rot_deg: float = 0.0, seed: int = 0) -> Trajectory:
+    """The odometry of a motion file (e.g. NuBot's LIBVISO2 table) integrated as the gridcells
+    service would: dead reckoning, or the grid-cell network with `decoder` and `velocity_scale`
+    (network units per metre); optional Gaussian noise on the increments (motion_io.add_noise)."""
+    motion = add_noise(load_motion(path), noise_trans, noise_rot_deg, seed)
+    if integrator == "deadreckoning":
+        return run_deadreckoning(motion).trajectory
+    if integrator == "grid":
+        return run_grid(motion, decoder, velocity_scale).trajectory
+    raise EvidenceError(f"unknown integrator {integrator!r} (grid or deadreckoning)")
+
+
+def build_map(images: Iterable, odometry: Trajectory, templates: TemplateParams, consistency: ConsistencyParams,
+              map_params: MapParams, store: Path | None = None, reference: Trajectory | None = None) -> OfflineMap:
+    """Run view templates, the consistency rule and the experience map over `images` (objects
+    with `seq`, `stamp`, `left`: e.g. services.source.datasets.ImageFolder frames, or a list of
+    them); odometry row k is the pose at frame k. With `store`, the map's inputs are written to
+    that log as the expmap service writes them (so `gridslam map export` reads it). Closures
+    are judged on `reference` (row k at frame k; None: the odometry)."""
+    x, y, heading = odometry.planar()
+    view_templates, rule = ViewTemplates(templates), ConsistencyRule(consistency)
+    experience_map = ExperienceMap(map_params)
+    map_store = MapStore(store, map_params) if store is not None else None
+    if map_store is not None and map_store.steps:
+        map_store.close()
+        raise EvidenceError(f"{store}: already holds a map; choose a new file")
+    columns: dict[str, list] = {name: [] for name in ("frames", "stamps", "odometry", "template_ids", "is_new", "distances",
+                                                      "matched_frames", "possible", "experiences")}
+    closures: list[Closure] = []
+    before = None
+    try:
+        for frame in images:
+            seq = int(frame.seq)
+            if seq >= len(x):
+                raise EvidenceError(f"frame {seq}: the odometry has only {len(x)} poses")
+            match = view_templates.observe(frame.left, seq)
+            closure = rule.update(seq, match.template_id, match.is_new, match.matched_frame)
+            pose = (float(x[seq]), float(y[seq]), float(heading[seq]))
+            step = Step(seq, float(frame.stamp), pose, match.template_id,
+                        (closure.matched_template, closure.matched_frame) if closure else None)
+            if map_store is not None:
+                map_store.append(step)
+            state = MapState(experience_map.poses.copy(), list(experience_map.links))
+            result = step.apply(experience_map)
+            if before is None and any(link.loop_closure for link in result.new_links):
+                before = state
+            if closure is not None:
+                closures.append(closure)
+            for name, value in (("frames", seq), ("stamps", float(frame.stamp)), ("odometry", pose),
+                                ("template_ids", match.template_id), ("is_new", match.is_new),
+                                ("distances", match.distance), ("matched_frames", match.matched_frame),
+                                ("possible", not match.is_new and seq - match.matched_frame >= consistency.recent_frames),
+                                ("experiences", result.experience)):
+                columns[name].append(value)
+    finally:
+        if map_store is not None:
+            map_store.close()
+    if not columns["frames"]:
+        raise EvidenceError("no frames to build a map from")
+    arrays = {name: np.array(values) for name, values in columns.items()}
+    if reference is not None:
+        if len(reference) < len(x):
+            raise EvidenceError(f"the reference path has {len(reference)} poses, the odometry {len(x)}")
+        reference = reference.select(arrays["frames"])
+    return OfflineMap(**arrays, closures=closures, experience_map=experience_map, template_count=len(view_templates),
+                      before=before, reference=reference)
+
+
+# --- plots ------------------------------------------------------------------------------------
+def _save(figure: Figure, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(figure)
+    figure.savefig(path, dpi=DPI, format="png")
+    return path
+
+
+def plot_ids_over_frames(png_path, run: OfflineMap, radius: float, title: str = "") -> Path:
+    """The paper's Fig. 10: view-template id and experience id against frame, with the
+    possible closures (matches of non-recent templates) and the confirmed ones marked."""
+    figure = Figure(figsize=(8.0, 6.0), layout="constrained")
+    top, bottom = figure.subplots(2, 1, sharex=True)
+    top.step(run.frames, run.template_ids, where="post", color="C0", linewidth=1.2, label="view template")
+    bottom.step(run.frames, run.experiences, where="post", color="C1", linewidth=1.2, label="experience")
+    near = np.array([run.odometry_distance(int(f), int(m)) <= radius for f, m in zip(run.frames, run.matched_frames)])
+    for axes, ids in ((top, run.template_ids), (bottom, run.experiences)):
+        for mask, colour, label in ((run.possible & near, "C2", f"possible closure (same place, ≤ {radius:g} m)"),
+                                    (run.possible & ~near, "C3", f"possible closure elsewhere (> {radius:g} m)")):
+            if mask.any():
+                axes.plot(run.frames[mask], ids[mask], "o", markersize=4, color=colour, label=label)
+        confirmed = np.array([c.frame for c in run.closures])
+        if len(confirmed):
+            rows = np.searchsorted(run.frames, confirmed)
+            axes.plot(confirmed, ids[rows], "x", color="black", markersize=6, label="confirmed closure")
+        axes.grid(True, alpha=0.3)
+        axes.legend(loc="upper left", fontsize="small")
+    top.set_ylabel("view template id")
+    bottom.set_ylabel("experience id")
+    bottom.set_xlabel("frame")
+    if title:
+        top.set_title(title)
+    return _save(figure, png_path)
+
+
+def _draw_map(axes, poses: np.ndarray, links: list[Link], odometry: np.ndarray | None, title: str) -> None:
+    if odometry is not None:
+        axes.plot(odometry[:, 0], odometry[:, 1], color="0.75", linewidth=1.0, label="odometry path")
+    for link in links:
+        a, b = poses[link.source], poses[link.target]
+        axes.plot([a[0], b[0]], [a[1], b[1]], color="C3" if link.loop_closure else "C0",
+                  linewidth=2.0 if link.loop_closure else 0.8)
+    axes.plot(poses[:, 0], poses[:, 1], ".", color="C0", markersize=4, label=f"{len(poses)} experiences")
+    axes.plot([], [], color="C0", linewidth=0.8, label="odometric link")
+    axes.plot([], [], color="C3", linewidth=2.0, label="loop-closure link")
+    axes.plot(poses[0, 0], poses[0, 1], "o", color="black", markersize=6, label="first experience")
+    axes.set_aspect("equal", adjustable="datalim")
+    axes.grid(True, alpha=0.3)
+    axes.set_xlabel("x [m]")
+    axes.set_ylabel("y [m]")
+    axes.set_title(title, fontsize="medium")
+    axes.legend(loc="best", fontsize="x-small")
+
+
+def plot_map_correction(png_path, run: OfflineMap, title: str = "") -> Path:
+    """The experience map just before its first loop-closure link (odometry only) beside the
+    final relaxed map, and the per-frame trajectory before and after correction."""
+    figure = Figure(figsize=(15.0, 5.2), layout="constrained")
+    left, middle, right = figure.subplots(1, 3)
+    if run.before is not None:
+        _draw_map(left, run.before.poses, run.before.links, run.odometry,
+                  f"before the first loop-closure link ({len(run.before.poses)} experiences)")
+    else:
+        left.set_title("no loop-closure link: the map is the odometry")
+    final = run.experience_map
+    _draw_map(middle, final.poses, final.links, None, f"after relaxation (end of run, {len(final)} experiences)")
+    corrected = run.corrected_trajectory().positions
+    if run.reference is not None:
+        right.plot(run.reference.positions[:, 0], run.reference.positions[:, 1], "--", color="black", linewidth=1.0,
+                   label="reference (noiseless odometry)")
+    right.plot(run.odometry[:, 0], run.odometry[:, 1], color="0.6", label="odometry (uncorrected)")
+    right.plot(corrected[:, 0], corrected[:, 1], color="C2", label="frames on the final map (corrected)")
+    for positions, colour in ((run.odometry, "0.6"), (corrected, "C2")):
+        right.plot(positions[0, 0], positions[0, 1], "o", color=colour)
+        right.plot(positions[-1, 0], positions[-1, 1], "s", color=colour)
+    right.set_aspect("equal", adjustable="datalim")
+    right.grid(True, alpha=0.3)
+    right.set_xlabel("x [m]")
+    right.set_title("per-frame trajectory (○ start, □ end)", fontsize="medium")
+    right.legend(loc="best", fontsize="x-small")
+    if title:
+        figure.suptitle(title)
+    return _save(figure, png_path)
+
+
+# --- results ----------------------------------------------------------------------------------
+def write_build(folder: Path, run: OfflineMap, radius: float, config: dict, title: str = "") -> dict[str, Path]:
+    """loop_closures.csv, frames.csv, summary.json (with the config), map.tum (corrected),
+    odometry.tum, graph.json and the two plots."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {}
+    with open(folder / "loop_closures.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CLOSURE_COLUMNS)
+        writer.writeheader()
+        writer.writerows(run.closure_rows(radius))
+    files["loop_closures"] = folder / "loop_closures.csv"
+    with open(folder / "frames.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(FRAME_COLUMNS)
+        closed = {c.frame for c in run.closures}
+        for i, frame in enumerate(run.frames):
+            writer.writerow((int(frame), int(run.template_ids[i]), int(run.is_new[i]), f"{run.distances[i]:.5f}",
+                             int(run.matched_frames[i]), int(run.possible[i]), int(frame in closed), int(run.experiences[i])))
+    files["frames"] = folder / "frames.csv"
+    files["summary"] = write_json(folder / "summary.json", {"config": config, "summary": run.summary(radius)})
+    files["map_tum"] = write_tum(folder / "map.tum", run.corrected_trajectory())
+    files["odometry_tum"] = write_tum(folder / "odometry.tum", run.odometry_trajectory())
+    files["graph"] = write_json(folder / "graph.json", graph_dict(run.experience_map))
+    files["ids_plot"] = plot_ids_over_frames(folder / "templates_experiences.png", run, radius, title)
+    files["map_plot"] = plot_map_correction(folder / "map_correction.png", run, title)
+    run.files.update(files)
+    return files
+
+
+def sweep(images: list, odometry: Trajectory, templates: TemplateParams, consistency: ConsistencyParams,
+          map_params: MapParams, thresholds: list[float], tolerances: list[int], radius: float,
+          reference: Trajectory | None = None) -> list[dict]:
+    """One build per (match threshold, tolerance): what each finds, true and false."""
+    rows = []
+    for tolerance in tolerances:
+        for threshold in thresholds:
+            run = build_map(images, odometry, replace(templates, match_threshold=threshold),
+                            replace(consistency, tolerance=tolerance), map_params, reference=reference)
+            summary = run.summary(radius)
+            first = summary["first_confirmed"]
+            rows.append({"match_threshold": threshold, "tolerance": tolerance, "view_templates": summary["view_templates"],
+                         "possible": summary["possible_closures"], "possible_elsewhere": summary["possible_closures_elsewhere"],
+                         "confirmed": summary["confirmed_closures"],
+                         "confirmed_elsewhere": summary["confirmed_closures_elsewhere"],
+                         "first_confirmed": f"{first['frame']} ↔ {first['matched_frame']}" if first else "-"})
+    return rows

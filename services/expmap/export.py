@@ -1,0 +1,153 @@
+"""Export of a persisted experience map: the graph (experiences and links) as JSON and the
+corrected per-frame trajectory in TUM format.
+
+The map log (store.py) holds the map's inputs, not its state, so an export replays them with
+the parameters the log was written with and reads the result off the rebuilt map. The log is
+only read here, never cut: a service may still be appending to it, and a torn last record
+(a write in progress, or a crash) is skipped with a warning exactly as a restart would skip it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import zlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.common.errors import DataError
+from services.evaluation.results import write_json
+from services.evaluation.trajectory import Trajectory, write_tum
+from services.expmap.graph import ExperienceMap, MapParams
+from services.expmap.store import FORMAT, Step
+
+log = logging.getLogger(__name__)
+
+GRAPH_FORMAT = "gridslam-experience-graph"
+GRAPH_VERSION = 1
+
+
+class MapExportError(DataError):
+    """A map that cannot be exported (the message names the file)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MapLog:
+    """What a map log holds: the parameters it was written with and its frames' inputs."""
+
+    path: Path
+    params: MapParams
+    steps: list[Step]
+    torn_last_record: bool = False
+
+    def rebuild(self) -> ExperienceMap:
+        experience_map = ExperienceMap(self.params)
+        for step in self.steps:
+            step.apply(experience_map)
+        return experience_map
+
+
+def read_log(path, params: MapParams | None = None) -> MapLog:
+    """Read a map log without changing it (its format: services/common/journal.py). `params`
+    None takes the log's own parameters; otherwise they must equal the log's (the same inputs
+    replayed with other parameters make another map)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise MapExportError(f"{path}: no such map log") from None
+    except OSError as error:
+        raise MapExportError(f"{path}: cannot read the map log ({error.strerror})") from None
+    *complete, tail = data.split(b"\n")   # what follows the last newline is a torn record, if anything
+    records = []
+    for number, raw in enumerate(complete, start=1):
+        text, tab, crc = raw.decode("utf-8", errors="replace").rpartition("\t")
+        if not tab or f"{zlib.crc32(text.encode()):08x}" != crc:
+            if number == len(complete) and not tail and number > 1:
+                tail = raw
+                break
+            raise MapExportError(f"{path}: line {number}: record is damaged (checksum mismatch)")
+        records.append(json.loads(text))
+    if tail:
+        log.warning("%s: torn last record skipped (%d bytes; a write in progress or a crash)", path, len(tail))
+    if not records or records[0].get("format") != FORMAT or not isinstance(records[0].get("params"), dict):
+        raise MapExportError(f"{path}: not a gridslam experience-map log")
+    try:
+        logged = MapParams(**records[0]["params"])
+    except TypeError:
+        raise MapExportError(f"{path}: line 1: unknown map parameters {records[0]['params']}") from None
+    if params is not None and params != logged:
+        raise MapExportError(f"{path}: the map was built with parameters {asdict(logged)}, not {asdict(params)}; "
+                             "export it with the same preset or config (or with neither: the log's own)")
+    steps = []
+    for number, record in enumerate(records[1:], start=2):
+        try:
+            closure = record["closure"]
+            steps.append(Step(int(record["frame"]), float(record["stamp"]), tuple(float(v) for v in record["odometry"]),
+                              int(record["template"]), (int(closure[0]), int(closure[1])) if closure else None))
+        except (KeyError, TypeError, ValueError, IndexError):
+            raise MapExportError(f"{path}: line {number}: not a map record") from None
+    return MapLog(path, logged, steps, bool(tail))
+
+
+def graph_dict(experience_map: ExperienceMap) -> dict:
+    """The map as a graph: experiences (map pose, template, frame of creation) and links
+    (odometric transform from source to target, the frame that made it, loop_closure flag)."""
+    return {
+        "format": GRAPH_FORMAT,
+        "version": GRAPH_VERSION,
+        "params": asdict(experience_map.params),
+        "frames": len(experience_map.frames),
+        "experiences": [{"id": i, "x": float(x), "y": float(y), "heading": float(heading),
+                         "template_id": experience_map.templates[i], "frame": experience_map.created[i]}
+                        for i, (x, y, heading) in enumerate(experience_map.poses)],
+        "links": [asdict(link) for link in experience_map.links],
+    }
+
+
+def corrected_trajectory(experience_map: ExperienceMap, steps: list[Step]) -> Trajectory:
+    """Every frame placed on the relaxed map (ExperienceMap.trajectory), stamped from the log."""
+    stamps = {step.frame: step.stamp for step in steps}
+    rows = experience_map.trajectory()
+    if not rows:
+        return Trajectory.from_planar([], [], [], [])
+    frames, x, y, heading = (np.array(column) for column in zip(*rows))
+    return Trajectory.from_planar([stamps[int(f)] for f in frames], x, y, heading)
+
+
+def odometry_trajectory(steps: list[Step]) -> Trajectory:
+    """The map's input odometry (uncorrected), same frames and stamps."""
+    if not steps:
+        return Trajectory.from_planar([], [], [], [])
+    odometry = np.array([step.odometry for step in steps])
+    return Trajectory.from_planar([step.stamp for step in steps], odometry[:, 0], odometry[:, 1], odometry[:, 2])
+
+
+@dataclass
+class ExportResult:
+    map_log: MapLog
+    experience_map: ExperienceMap
+    files: dict[str, Path] = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        links = self.experience_map.links
+        return {"frames": len(self.map_log.steps), "experiences": len(self.experience_map), "links": len(links),
+                "loop_closure_links": sum(link.loop_closure for link in links),
+                "torn_last_record": self.map_log.torn_last_record}
+
+
+def export_map(store, graph: Path | None = None, tum: Path | None = None, params: MapParams | None = None) -> ExportResult:
+    """Rebuild the map of `store` and write the graph JSON and/or the corrected TUM trajectory."""
+    map_log = read_log(store, params)
+    experience_map = map_log.rebuild()
+    result = ExportResult(map_log, experience_map)
+    try:
+        if graph is not None:
+            result.files["graph"] = write_json(graph, graph_dict(experience_map))
+        if tum is not None:
+            result.files["tum"] = write_tum(tum, corrected_trajectory(experience_map, map_log.steps))
+    except OSError as error:
+        raise MapExportError(f"cannot write the export ({error.strerror or error})") from None
+    return result

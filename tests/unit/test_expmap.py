@@ -1,0 +1,335 @@
+"""The experience map: relaxation with known answers, persistence and recovery of its log, the
+export, and the adapter's determinism (services/expmap)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from schemas import GridPose, Header, LoopClosure, Time, ViewTemplate
+from services.cli import main as gridslam
+from services.common.convert import planar_pose
+from services.common.errors import DataError
+from services.common.runtime import RuntimeConfig
+from services.evaluation import metrics
+from services.evaluation.trajectory import Trajectory, read_tum
+from services.expmap.export import MapExportError, export_map, graph_dict, read_log
+from services.expmap.graph import ExperienceMap, Link, MapParams, compose, wrap
+from services.expmap.service import ExpMapConfig, ExpMapService
+from services.expmap.store import MapStore, Step
+
+QUARTER = math.pi / 2
+
+
+# --- relaxation -----------------------------------------------------------------------------
+def loop_map(poses, links) -> ExperienceMap:
+    experience_map = ExperienceMap(MapParams())
+    experience_map.poses = np.array(poses, dtype=float)
+    experience_map.templates = list(range(len(poses)))
+    experience_map.created = list(range(len(poses)))
+    experience_map.links = [Link(s, t, dx, dy, dh, frame=t, loop_closure=closure) for s, t, dx, dy, dh, closure in links]
+    return experience_map
+
+
+def test_a_square_with_an_odometry_error_relaxes_to_the_balanced_answer():
+    # Four 1 m sides turning left; the odometry of the last side says 1.2 m (a 0.2 m misclosure).
+    # Headings agree around the loop, so only positions move: least squares over a cycle of
+    # equal links gives every link the same residual, a quarter of the misclosure (0.05 m
+    # along +y), and with every experience of degree 2 the centroid (0.5, 0.5) stays put.
+    # By hand: p1 = p0 + (1, 0.05), p2 = p0 + (1, 1.1), p3 = p0 + (0, 1.15), p0 = (0, -0.075).
+    experience_map = loop_map(
+        poses=[(0, 0, 0), (1, 0, QUARTER), (1, 1, 2 * QUARTER), (0, 1, -QUARTER)],
+        links=[(0, 1, 1.0, 0, QUARTER, False), (1, 2, 1.0, 0, QUARTER, False), (2, 3, 1.0, 0, QUARTER, False),
+               (3, 0, 1.2, 0, QUARTER, True)])
+    experience_map.relax(2000)
+    expected = np.array([(0, -0.075), (1, -0.025), (1, 1.025), (0, 1.075)])
+    assert experience_map.poses[:, :2] == pytest.approx(expected, abs=1e-9)
+    assert wrap(experience_map.poses[:, 2] - [0, QUARTER, 2 * QUARTER, -QUARTER]) == pytest.approx(np.zeros(4), abs=1e-12)
+
+
+def test_a_heading_misclosure_is_shared_equally_by_the_links_of_the_loop():
+    # Three experiences at one place; the turns around the loop add up to 0.1 rad, not 0.
+    experience_map = loop_map(poses=[(0, 0, 0.0), (0, 0, 0.5), (0, 0, 1.0)],
+                              links=[(0, 1, 0, 0, 0.5, False), (1, 2, 0, 0, 0.5, False), (2, 0, 0, 0, -0.9, True)])
+    experience_map.relax(2000)
+    headings = experience_map.poses[:, 2]
+    # Each link ends up 0.1 / 3 short of its measured turn; the mean heading (0.5) is kept.
+    assert np.diff(headings) == pytest.approx([0.5 - 0.1 / 3] * 2, abs=1e-9)
+    assert headings.mean() == pytest.approx(0.5, abs=1e-9)
+    assert experience_map.poses[:, :2] == pytest.approx(np.zeros((3, 2)), abs=1e-12)
+
+
+def drive_square(side: float = 2.0, step: float = 0.25, heading_drift: float = 0.0, laps: float = 1.0):
+    """Frames driving a square counter-clockwise from the origin: (frame, true pose, odometry
+    pose, template id). The odometry's heading drifts by `heading_drift` rad per frame; the
+    template changes with the side (so it repeats on a revisit)."""
+    frames, per_side = [], int(round(side / step))
+    true_pose = odometry = (0.0, 0.0, 0.0)
+    count = int(round(4 * per_side * laps))
+    for k in range(count + 1):
+        frames.append((k, true_pose, odometry, (k // per_side) % 4 if k < count else 0))
+        turn = QUARTER if (k + 1) % per_side == 0 else 0.0
+        true_pose = compose(true_pose, (step, 0.0, turn))
+        odometry = compose(odometry, (step, 0.0, turn + heading_drift))
+    return frames
+
+
+def run_map(frames, params=MapParams(new_experience_distance=0.6), closure_at_end=True) -> ExperienceMap:
+    experience_map = ExperienceMap(params)
+    last = frames[-1][0]
+    for frame, _, odometry, template in frames:
+        closure = (0, 0) if closure_at_end and frame == last else None
+        experience_map.step(frame, odometry, template, closure)
+    return experience_map
+
+
+def test_a_consistent_loop_does_not_move():
+    frames = drive_square()
+    experience_map = run_map(frames)
+    assert sum(link.loop_closure for link in experience_map.links) == 1
+    placed = np.array([compose(tuple(experience_map.poses[e]), offset) for _, e, offset in experience_map.frames])
+    experience_map.relax(500)
+    truth = np.array([pose for _, pose, _, _ in frames])
+    assert experience_map.poses[:, :2] == pytest.approx(truth[experience_map.created][:, :2], abs=1e-9)
+    assert np.array([row[1:] for row in experience_map.trajectory()])[:, :2] == pytest.approx(placed[:, :2], abs=1e-9)
+
+
+def test_a_closure_pulls_a_drifting_loop_together():
+    frames = drive_square(heading_drift=0.01)
+    odometry = np.array([o for _, _, o, _ in frames])
+    truth = np.array([t for _, t, _, _ in frames])
+    experience_map = run_map(frames)
+    experience_map.relax(3000)
+    corrected = np.array([row[1:] for row in experience_map.trajectory()])
+    # The end is back at the start (the closure), and the whole path is near the truth: the
+    # heading drift is spread over the loop. (The map may move and turn as a whole: SE(2)-aligned.)
+    assert np.linalg.norm(odometry[-1, :2] - odometry[0, :2]) > 0.4
+    assert np.linalg.norm(corrected[-1, :2] - corrected[0, :2]) < 0.01
+
+    def errors(path):
+        as_trajectory = [Trajectory.from_planar(np.arange(len(p)), p[:, 0], p[:, 1], p[:, 2]) for p in (path, truth)]
+        return metrics.position_errors(*as_trajectory, align="se2")
+    assert errors(odometry).max() > 0.2
+    assert errors(corrected).max() < 0.1 * errors(odometry).max()
+
+
+# --- persistence ------------------------------------------------------------------------------
+PARAMS = MapParams(new_experience_distance=0.6)
+
+
+def square_steps(laps: float = 1.25, drift: float = 0.01) -> list[Step]:
+    """Steps of a loop driven 1¼ times, with confirmed closures on the second lap."""
+    frames = drive_square(heading_drift=drift, laps=laps)
+    per_lap = 32
+    steps = []
+    for frame, _, odometry, template in frames:
+        closure = (template, 8 * template) if frame >= per_lap else None   # each side's first frame
+        steps.append(Step(frame, 0.1 * frame, odometry, template, closure))
+    return steps
+
+
+def write_store(path, steps, params=PARAMS) -> ExperienceMap:
+    store, experience_map = MapStore(path, params), ExperienceMap(params)
+    for step in steps:
+        store.append(step)
+        step.apply(experience_map)
+    store.close()
+    return experience_map
+
+
+def same_map(a: ExperienceMap, b: ExperienceMap) -> None:
+    assert np.array_equal(a.poses, b.poses)
+    assert a.links == b.links and a.templates == b.templates and a.created == b.created
+    assert a.trajectory() == b.trajectory()
+
+
+def test_a_map_rebuilt_from_its_log_equals_the_original(tmp_path):
+    steps = square_steps()
+    original = write_store(tmp_path / "map.log", steps)
+    assert sum(link.loop_closure for link in original.links) >= 2
+    store = MapStore(tmp_path / "map.log", PARAMS)
+    assert store.steps == steps
+    same_map(store.rebuild(PARAMS), original)
+    store.close()
+
+
+def test_a_torn_last_record_is_skipped_with_a_warning_and_cut(tmp_path, caplog):
+    path = tmp_path / "map.log"
+    steps = square_steps()
+    write_store(path, steps[:-1])
+    size = path.stat().st_size
+    with open(path, "a") as handle:   # a crash in the middle of writing the last record
+        handle.write('{"frame":40,"stamp":4.0,"odometry":[0.1,')
+    with caplog.at_level(logging.WARNING):
+        store = MapStore(path, PARAMS)
+    assert "torn last record" in caplog.text
+    assert store.steps == steps[:-1] and path.stat().st_size == size
+    store.append(steps[-1])   # the service goes on from there
+    store.close()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert MapStore(path, PARAMS).steps == steps
+    assert "torn" not in caplog.text
+
+
+def test_a_last_record_with_a_bad_checksum_is_skipped_and_cut(tmp_path, caplog):
+    path = tmp_path / "map.log"
+    steps = square_steps()
+    write_store(path, steps)
+    lines = path.read_text().splitlines(keepends=True)
+    lines[-1] = lines[-1].replace('"template":', '"template":1')   # the record changed, its CRC did not
+    path.write_text("".join(lines))
+    with caplog.at_level(logging.WARNING):
+        store = MapStore(path, PARAMS)
+    assert "torn last record" in caplog.text
+    assert store.steps == steps[:-1]
+    assert path.read_text() == "".join(lines[:-1])
+    store.close()
+
+
+def test_a_damaged_record_in_the_middle_is_an_error_naming_file_and_line(tmp_path):
+    path = tmp_path / "map.log"
+    write_store(path, square_steps())
+    lines = path.read_text().splitlines(keepends=True)
+    lines[4] = lines[4].replace('"frame":3', '"frame":7')
+    path.write_text("".join(lines))
+    with pytest.raises(DataError, match=rf"{path}: line 5: .*damaged"):
+        MapStore(path, PARAMS)
+    with pytest.raises(DataError, match=rf"{path}: line 5: .*damaged"):
+        read_log(path)
+    assert path.read_text() == "".join(lines)   # nothing was cut
+
+
+def test_other_parameters_are_a_clear_error(tmp_path):
+    path = tmp_path / "map.log"
+    write_store(path, square_steps()[:5])
+    with pytest.raises(DataError, match=rf"{path}: .*new_experience_distance.*0\.6.*same parameters"):
+        MapStore(path, MapParams(new_experience_distance=1.0))
+    with pytest.raises(MapExportError, match=rf"{path}: the map was built with parameters"):
+        read_log(path, MapParams(new_experience_distance=1.0))
+
+
+# --- export ---------------------------------------------------------------------------------
+def test_export_writes_the_graph_and_the_corrected_trajectory(tmp_path):
+    steps = square_steps()
+    original = write_store(tmp_path / "map.log", steps)
+    result = export_map(tmp_path / "map.log", tmp_path / "graph.json", tmp_path / "map.tum")
+    same_map(result.experience_map, original)
+    graph = json.loads((tmp_path / "graph.json").read_text())
+    assert graph == json.loads(json.dumps(graph_dict(original)))
+    assert len(graph["experiences"]) == len(original) and len(graph["links"]) == len(original.links)
+    assert [link["loop_closure"] for link in graph["links"]] == [link.loop_closure for link in original.links]
+    assert graph["experiences"][3]["x"] == original.poses[3, 0]
+    trajectory = read_tum(tmp_path / "map.tum")
+    assert trajectory.stamps == pytest.approx([step.stamp for step in steps])
+    x, y, heading = trajectory.planar()
+    expected = np.array([row[1:] for row in original.trajectory()])
+    assert np.column_stack([x, y]) == pytest.approx(expected[:, :2], abs=1e-12)
+
+
+def test_export_reads_a_torn_log_without_cutting_it(tmp_path, caplog):
+    path = tmp_path / "map.log"
+    steps = square_steps()
+    write_store(path, steps)
+    with open(path, "a") as handle:
+        handle.write('{"frame":41')
+    before = path.read_bytes()
+    with caplog.at_level(logging.WARNING):
+        map_log = read_log(path)
+    assert "torn last record" in caplog.text and map_log.torn_last_record
+    assert map_log.steps == steps and map_log.params == PARAMS
+    assert path.read_bytes() == before
+
+
+def test_map_export_command(tmp_path, capsys):
+    path = tmp_path / "experience_map.log"
+    write_store(path, square_steps(), ExpMapConfig().params())
+    assert gridslam(["map", "export", str(path)]) == 0
+    assert (tmp_path / "experience_map.graph.json").is_file() and (tmp_path / "experience_map.tum").is_file()
+    assert "loop-closure links" in capsys.readouterr().out
+    assert gridslam(["map", "export", str(path), "--preset", "nubot", "--tum", str(tmp_path / "x.tum")]) == 1
+    assert "the map was built with parameters" in capsys.readouterr().err
+    assert gridslam(["map", "export", str(tmp_path / "missing.log")]) == 1
+    assert "no such map log" in capsys.readouterr().err
+
+
+# --- the adapter ----------------------------------------------------------------------------
+def messages(steps: list[Step]) -> list[tuple[str, object]]:
+    """The expmap service's inputs for `steps`: grid/pose, view/template and loop/closure."""
+    out = []
+    for step in steps:
+        header = Header(seq=step.frame, stamp=Time.from_seconds(step.stamp), frame_id="odom", robot="robot0")
+        x, y, heading = step.odometry
+        out.append(("pose", GridPose(header=header, pose=planar_pose(x, y, heading), heading=heading,
+                                     lattice_shift=(0.0, 0.0), step_length=0.25, integrator="grid")))
+        if step.closure is not None:
+            out.append(("closure", LoopClosure(header=header, frame=step.frame, matched_frame=step.closure[1],
+                                               matched_template=step.closure[0], votes=7)))
+        out.append(("view", ViewTemplate(header=header, template_id=step.template_id, is_new=False, distance=0.01,
+                                         relative_angle=0.0, matched_frame=0, template_count=4,
+                                         loop_closure=step.closure is not None)))
+    return out
+
+
+def service(store, published: list | None = None) -> ExpMapService:
+    expmap = ExpMapService(RuntimeConfig(), ExpMapConfig(store=store, new_experience_distance=0.6))
+    expmap._send = lambda topic, message: published.append((topic, message)) if published is not None else None
+    return expmap
+
+
+def deliver(expmap: ExpMapService, inputs) -> None:
+    handlers = {"pose": expmap.on_grid_pose, "view": expmap.on_view, "closure": expmap.on_closure}
+    for kind, message in inputs:
+        handlers[kind](message)
+
+
+def map_poses(published) -> list:
+    return [(m.header.seq, m.pose.position.x, m.pose.position.y, m.heading, m.experience_id)
+            for topic, m in published if topic == "map/pose"]
+
+
+def test_the_same_inputs_in_the_same_order_give_the_same_map(tmp_path):
+    steps = square_steps()
+    runs = []
+    for name in ("a", "b"):
+        published = []
+        expmap = service(tmp_path / f"{name}.log", published)
+        deliver(expmap, messages(steps))
+        expmap.teardown()
+        runs.append((expmap, published))
+    (first, first_published), (second, second_published) = runs
+    same_map(first.map, second.map)
+    assert map_poses(first_published) == map_poses(second_published)
+    assert len(map_poses(first_published)) == len(steps)
+    assert (tmp_path / "a.log").read_bytes() == (tmp_path / "b.log").read_bytes()
+
+
+def test_the_map_does_not_depend_on_how_the_topics_interleave(tmp_path):
+    steps = square_steps()
+    inputs = messages(steps)
+    in_order = service(tmp_path / "a.log")
+    deliver(in_order, inputs)
+    views_first = service(tmp_path / "b.log")   # every view (and closure) before any pose
+    deliver(views_first, [m for m in inputs if m[0] != "pose"] + [m for m in inputs if m[0] == "pose"])
+    same_map(in_order.map, views_first.map)
+
+
+def test_a_killed_service_resumes_from_its_log_to_the_same_map(tmp_path):
+    steps = square_steps()
+    inputs = messages(steps)
+    uninterrupted = service(tmp_path / "a.log")
+    deliver(uninterrupted, inputs)
+    killed = service(tmp_path / "b.log")
+    half = len(inputs) // 2
+    deliver(killed, inputs[:half])   # then killed: no teardown, nothing flushed beyond each append
+    published = []
+    restarted = service(tmp_path / "b.log", published)
+    resumed_at = restarted.map.last_frame
+    deliver(restarted, inputs)        # the source sends everything again: seen frames are answered, not re-applied
+    same_map(uninterrupted.map, restarted.map)
+    assert resumed_at is not None and 0 < resumed_at < steps[-1].frame
+    assert [seq for seq, *_ in map_poses(published)][-1] == steps[-1].frame
