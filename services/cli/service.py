@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 
 from services.common.runtime import add_runtime_flags, runtime_from_args
 
@@ -39,5 +40,8 @@ def service_parser(name: str):
 
 def run(args) -> int:
     parser, service_main = service_parser(args.name)
+    # A preset picks the config files a service's settings are read from, so it cannot be one of
+    # them: it comes from --preset, else GRIDSLAM_<SERVICE>_PRESET (containers).
+    parser.set_defaults(preset=os.environ.get(f"GRIDSLAM_{args.name.upper()}_PRESET"))
     service_args = parser.parse_args(args.service_args)
     return service_main(runtime_from_args(service_args), service_args)
