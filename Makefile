@@ -14,8 +14,10 @@ $(BIN)/gridslam: pyproject.toml
 demo: $(BIN)/gridslam
 	$(BIN)/gridslam demo
 
+# One BLAS thread per process: tests and services share two cores, and idle BLAS threads
+# spinning on busy cores slow small matrix work a hundredfold.
 test: $(BIN)/gridslam
-	$(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q
 
 bench: $(BIN)/gridslam
 	$(BIN)/gridslam bench
