@@ -16,7 +16,9 @@ from services.pipeline.recorder import Recording
 log = logging.getLogger(__name__)
 
 RPE_DISTANCES_M = (1.0, 10.0, 100.0)
-STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map": "map/pose"}
+# Stage → the topic whose arrival times give its latency. `map_online` is the pose expmap published
+# at each frame; `map` is every frame placed on the final, relaxed map (from the map's journal).
+STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map_online": "map/pose", "map": "map/pose"}
 
 
 def percentiles(values) -> dict[str, float | None]:
@@ -35,7 +37,8 @@ def trajectories(recording: Recording) -> dict[str, Trajectory]:
     if seqs:
         forward, left, yaw = (np.array([recording.increments[s][i] for s in seqs]) for i in range(3))
         result["egomotion"] = integrate_increments(forward, left, yaw, [stamps.get(s, 0.1 * s) for s in seqs])
-    for name, poses in (("gridcells", recording.grid_poses), ("map", recording.map_poses)):
+    for name, poses in (("gridcells", recording.grid_poses), ("map_online", recording.map_poses),
+                        ("map", recording.final_map)):
         seqs = sorted(poses)
         if seqs:
             x, y, heading = (np.array([poses[s][i] for s in seqs]) for i in range(3))
@@ -48,8 +51,8 @@ def trajectories(recording: Recording) -> dict[str, Trajectory]:
 
 
 def _seqs(recording: Recording, name: str) -> list[int]:
-    source = {"egomotion": recording.increments, "gridcells": recording.grid_poses, "map": recording.map_poses,
-              "groundtruth": recording.ground_truth}[name]
+    source = {"egomotion": recording.increments, "gridcells": recording.grid_poses, "map_online": recording.map_poses,
+              "map": recording.final_map, "groundtruth": recording.ground_truth}[name]
     return sorted(source)
 
 

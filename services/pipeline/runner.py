@@ -26,6 +26,7 @@ from services.common.config import SERVICES_DIR
 from services.common.errors import ConfigError, GridslamError
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
 from services.evaluation.results import results_dir, write_config
+from services.expmap.export import corrected_trajectory, read_log
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.source.spec import open_source
@@ -250,6 +251,11 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     finally:
         supervisor.stop([n for n in supervisor.children if n != "router"])
         supervisor.stop(["router"])
+    if (folder / MAP_LOG).exists():
+        map_log = read_log(folder / MAP_LOG)
+        final = corrected_trajectory(map_log.rebuild(), map_log.steps)
+        x, y, heading = final.planar()
+        recording.final_map = {step.frame: (x[i], y[i], heading[i]) for i, step in enumerate(map_log.steps)}
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
     result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
     write_report(folder, recording, result, trajs)
