@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.common import codec, topics
+from services.common import health
 from services.common.runtime import add_runtime_flags, open_session, runtime_from_args
 
 COLUMNS = ("robot", "service", "instance", "state", "received", "published", "decode_errors", "gaps", "stale", "uptime_s")
@@ -16,20 +16,11 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def live_services(session, robot: str, timeout: float) -> list[dict]:
+def service_rows(session, robot: str, timeout: float) -> list[dict]:
     """One row per live token, with the counters its status queryable reports (if any)."""
-    rows: dict[tuple[str, str, str], dict] = {}
-    for reply in session.liveliness().get(f"{topics.PREFIX}/{robot}/health/**", timeout=timeout):
-        if reply.ok is not None:
-            robot_name, service, instance = topics.parse_health_key(str(reply.ok.key_expr))
-            rows[(robot_name, service, instance)] = {"robot": robot_name, "service": service, "instance": instance}
-    for reply in session.get(f"{topics.PREFIX}/{robot}/status/**", timeout=timeout):
-        if reply.ok is None:
-            continue
-        try:
-            status = codec.decode(reply.ok.payload.to_bytes(), encoding=str(reply.ok.encoding))
-        except codec.CodecError:
-            continue
+    rows = {key: {"robot": key[0], "service": key[1], "instance": key[2]}
+            for key in health.live_services(session, robot, timeout)}
+    for status in health.statuses(session, robot, timeout):
         row = rows.get((status.header.robot, status.service, status.instance))
         if row is not None:
             row.update(status.model_dump(include={"state", "received", "published", "decode_errors", "gaps", "stale"}),
@@ -41,7 +32,7 @@ def run(args) -> int:
     runtime = runtime_from_args(args)
     session = open_session(runtime)
     try:
-        rows = live_services(session, "*" if args.all_robots else runtime.robot, args.timeout)
+        rows = service_rows(session, "*" if args.all_robots else runtime.robot, args.timeout)
     finally:
         session.close()
     if not rows:

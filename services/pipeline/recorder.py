@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from services.common import codec, topics
+from services.common import codec, health, topics
 from services.common.convert import heading_of, image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig, open_session
 
@@ -75,24 +75,12 @@ class Recorder:
 
     def live_services(self) -> set[str]:
         """Names of the services of this robot whose health token is alive."""
-        live = set()
-        for reply in self.session.liveliness().get(f"{topics.PREFIX}/{self.runtime.robot}/health/**", timeout=2):
-            if reply.ok is not None:
-                live.add(topics.parse_health_key(str(reply.ok.key_expr))[1])
-        return live
+        return {service for _, service, _ in health.live_services(self.session, self.runtime.robot)}
 
     def statuses(self) -> dict[str, dict]:
         """The status counters of every live service of this robot, by service name."""
-        found: dict[str, dict] = {}
-        for reply in self.session.get(f"{topics.PREFIX}/{self.runtime.robot}/status/**", timeout=3):
-            if reply.ok is None:
-                continue
-            try:
-                status = codec.decode(reply.ok.payload.to_bytes(), encoding=str(reply.ok.encoding))
-            except codec.CodecError:
-                continue
-            found[status.service] = status.model_dump(exclude={"header", "schema_version"})
-        return found
+        return {status.service: status.model_dump(exclude={"header", "schema_version"})
+                for status in health.statuses(self.session, self.runtime.robot, timeout=3)}
 
     def map_snapshot(self):
         """The expmap service's whole map (MapSnapshot), or None when nobody answers."""
