@@ -321,17 +321,24 @@ class FakeCapture:
 def test_live_camera_keeps_only_the_newest_frame():
     capture = FakeCapture(0)
     with LiveCamera(0, capture_factory=lambda device: capture, grey=True) as camera:
-        frames = []
-        for frame in camera:
+        frames, newest_when_asked = [], []
+        iterator = iter(camera)
+        for _ in range(5):
+            # A consumer much slower than the camera: wait until it has grabbed 5 more frames
+            # (by count, not by time, so a loaded machine cannot make the test pass or fail).
+            target = camera.frames_grabbed + 5
+            deadline = time.monotonic() + 10
+            while camera.frames_grabbed < target and time.monotonic() < deadline:
+                time.sleep(0.002)
+            newest_when_asked.append(camera.frames_grabbed - 1)
+            frame = next(iterator)
             frames.append(frame)
-            # The frame handed out is the newest one grabbed, not one queued long ago.
-            assert camera.frames_grabbed - 1 - frame.seq <= 3
             assert frame.left[0, 0] == frame.seq % 256 and frame.left.ndim == 2
-            time.sleep(0.02)  # a consumer much slower than the camera
-            if len(frames) == 5:
-                break
         seqs = [frame.seq for frame in frames]
-        assert all(b - a >= 5 for a, b in zip(seqs, seqs[1:])), seqs  # gaps, not a backlog
+        # The frame handed out is the newest one grabbed when it was asked for, not one queued
+        # long ago: the frames in between are dropped (gaps), never a backlog.
+        assert all(seq >= newest for seq, newest in zip(seqs, newest_when_asked)), (seqs, newest_when_asked)
+        assert all(b - a >= 5 for a, b in zip(seqs, seqs[1:])), seqs
         assert camera.frames_dropped >= seqs[-1] - len(seqs)
         assert camera.frames_grabbed >= camera.frames_dropped + len(frames)
         assert [f.stamp for f in frames] == sorted(f.stamp for f in frames)
