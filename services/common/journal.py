@@ -89,3 +89,5 @@ class Journal:
         if good < self.path.stat().st_size:
             with open(self.path, "r+b") as handle:
                 handle.truncate(good)
+                if good == 0:   # the torn record was the header itself: write it again
+                    handle.write(_line(header).encode())
