@@ -27,6 +27,9 @@ def register(subparsers) -> None:
     export.add_argument("store", type=Path, help="the map log (experience_map.log of a run)")
     export.add_argument("--graph", type=Path, help="graph JSON to write (default: STORE with .graph.json)")
     export.add_argument("--tum", type=Path, help="TUM trajectory to write (default: STORE with .tum)")
+    export.add_argument("--reference", type=Path,
+                        help="ground truth (TUM, e.g. groundtruth.tum of a run): print the odometry's and the corrected errors")
+    export.add_argument("--plot", type=Path, help="PNG of the odometry and corrected trajectories (and the reference)")
     _add_params(export, "map parameters (default: those the log was written with; given ones must match it)")
     export.set_defaults(func=run_export)
 
@@ -52,7 +55,7 @@ def register(subparsers) -> None:
             command.add_argument("--title", default="", help="title of the plots")
             command.set_defaults(func=run_build)
         else:
-            command.add_argument("--thresholds", default="0.05,0.06,0.08,0.1,0.12,0.13,0.15,0.2",
+            command.add_argument("--thresholds", default="0.05,0.06,0.07,0.08,0.1,0.12,0.13,0.14,0.15,0.2",
                                  help="comma-separated match thresholds")
             command.add_argument("--tolerances", default="5,6", help="comma-separated consistency tolerances (frames)")
             command.set_defaults(func=run_sweep)
@@ -69,7 +72,9 @@ def _config(model, section: str, args, overrides=None):
 
 
 def run_export(args) -> int:
-    from services.expmap.export import export_map
+    from services.evaluation.trajectory import read_tum
+    from services.evaluation.plots import plot_trajectories
+    from services.expmap.export import corrected_trajectory, errors_against, export_map, odometry_trajectory
     from services.expmap.service import ExpMapConfig
 
     params = _config(ExpMapConfig, "expmap", args).params() if (args.preset or args.config) else None
@@ -80,6 +85,17 @@ def run_export(args) -> int:
     print(format_table([("frames", summary["frames"], ""), ("experiences", summary["experiences"], ""),
                         ("links", summary["links"], ""), ("loop-closure links", summary["loop_closure_links"], ""),
                         ("torn last record skipped", summary["torn_last_record"], "")]))
+    if args.reference is not None:
+        errors = errors_against(result.map_log, result.experience_map, read_tum(args.reference))
+        print()
+        print(f"position errors against {args.reference} (m; poses paired by stamp):")
+        print(format_table([(f"{name}, {'as is' if kind == 'none' else 'SE(2)-aligned'}: {stat}", errors[name][kind][stat], "m")
+                            for name in ("odometry", "corrected") for kind in ("none", "se2") for stat in ("mean", "max")]))
+    if args.plot is not None:
+        trajectories = {"groundtruth": read_tum(args.reference)} if args.reference is not None else {}
+        trajectories |= {"odometry (map input)": odometry_trajectory(result.map_log.steps),
+                         "corrected (final map)": corrected_trajectory(result.experience_map, result.map_log.steps)}
+        result.files["plot"] = plot_trajectories(args.plot, trajectories, title=f"Experience map of {args.store}")
     for name, path in result.files.items():
         print(f"{name}: {path}")
     return 0

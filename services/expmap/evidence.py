@@ -29,7 +29,7 @@ from services.common.errors import DataError
 from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
-from services.expmap.export import graph_dict
+from services.expmap.export import corrected_trajectory, graph_dict, odometry_trajectory
 from services.expmap.graph import ExperienceMap, Link, MapParams
 from services.expmap.store import MapStore, Step
 from services.gridcells.motion_io import add_noise, load_motion
@@ -40,7 +40,7 @@ from services.loopclosure.templates import TemplateParams, ViewTemplates
 log = logging.getLogger(__name__)
 
 DPI = 120
-CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "odometry_distance_m", "same_place")
+CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "place_distance_m", "same_place")
 FRAME_COLUMNS = ("frame", "template_id", "is_new", "distance", "matched_frame", "possible_closure", "loop_closure", "experience")
 
 
@@ -61,8 +61,6 @@ class OfflineMap:
     """Everything an offline build saw, per frame, and the final map."""
 
     frames: np.ndarray              # (N,) frame indices
-    stamps: np.ndarray              # (N,) s
-    odometry: np.ndarray            # (N, 3) x, y, heading: the map's input
     template_ids: np.ndarray        # (N,)
     is_new: np.ndarray              # (N,) bool
     distances: np.ndarray           # (N,) match distance
@@ -72,39 +70,40 @@ class OfflineMap:
     closures: list[Closure]
     experience_map: ExperienceMap
     template_count: int
+    steps: list[Step]               # the map's inputs (odometry pose, template, closure), as its log holds them
     before: MapState | None = None  # the map just before the first loop-closure link
     reference: Trajectory | None = None   # (N poses) the path closures are judged on (None: the odometry)
     files: dict[str, Path] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self._row = {int(f): i for i, f in enumerate(self.frames)}
+        self.odometry = np.array([step.odometry for step in self.steps])   # (N, 3) x, y, heading
 
-    def odometry_distance(self, frame: int, matched_frame: int) -> float:
+    def place_distance(self, frame: int, matched_frame: int) -> float:
         """Distance between where two frames were taken on the reference path, m."""
         positions = self.odometry if self.reference is None else self.reference.positions
         a, b = positions[self._row[frame]], positions[self._row[matched_frame]]
         return float(math.hypot(a[0] - b[0], a[1] - b[1]))
 
     def odometry_trajectory(self) -> Trajectory:
-        return Trajectory.from_planar(self.stamps, self.odometry[:, 0], self.odometry[:, 1], self.odometry[:, 2])
+        return odometry_trajectory(self.steps)
 
     def corrected_trajectory(self) -> Trajectory:
-        rows = np.array(self.experience_map.trajectory())
-        return Trajectory.from_planar(self.stamps, rows[:, 1], rows[:, 2], rows[:, 3])
+        return corrected_trajectory(self.experience_map, self.steps)
 
     def closure_rows(self, radius: float) -> list[dict]:
         rows = []
         for closure in self.closures:
-            distance = self.odometry_distance(closure.frame, closure.matched_frame)
+            distance = self.place_distance(closure.frame, closure.matched_frame)
             rows.append({"frame": closure.frame, "matched_frame": closure.matched_frame,
                          "matched_template": closure.matched_template, "votes": closure.votes,
-                         "odometry_distance_m": distance, "same_place": distance <= radius})
+                         "place_distance_m": distance, "same_place": distance <= radius})
         return rows
 
     def summary(self, radius: float) -> dict:
         """Counts and closures; "elsewhere" means between frames more than `radius` apart."""
         possible = [(int(f), int(m)) for f, m, p in zip(self.frames, self.matched_frames, self.possible) if p]
-        possible_far = [(f, m) for f, m in possible if self.odometry_distance(f, m) > radius]
+        possible_far = [(f, m) for f, m in possible if self.place_distance(f, m) > radius]
         rows = self.closure_rows(radius)
         true_rows = [row for row in rows if row["same_place"]]
         odometry, corrected = self.odometry_trajectory(), self.corrected_trajectory()
@@ -129,15 +128,11 @@ class OfflineMap:
             "confirmed_frames": [min((r["frame"] for r in rows), default=None), max((r["frame"] for r in rows), default=None)],
             "matched_frames": sorted({r["matched_frame"] for r in rows}),
             "same_place_radius_m": radius,
-            "odometry_end_to_start_m": _gap(odometry),
-            "corrected_end_to_start_m": _gap(corrected),
+            "odometry_end_to_start_m": metrics.end_to_start_gap(odometry),
+            "corrected_end_to_start_m": metrics.end_to_start_gap(corrected),
             "odometry_path_m": odometry.path_length(),
             "corrected_path_m": corrected.path_length(),
         }
-
-
-def _gap(traj: Trajectory) -> float:
-    return float(np.linalg.norm(traj.positions[-1] - traj.positions[0]))
 
 
 def odometry_from_motion(path, integrator: str = "deadreckoning", decoder: str = "subpixel", velocity_scale: float = 1.0,
@@ -167,9 +162,10 @@ def build_map(images: Iterable, odometry: Trajectory, templates: TemplateParams,
     if map_store is not None and map_store.steps:
         map_store.close()
         raise EvidenceError(f"{store}: already holds a map; choose a new file")
-    columns: dict[str, list] = {name: [] for name in ("frames", "stamps", "odometry", "template_ids", "is_new", "distances",
-                                                      "matched_frames", "possible", "experiences")}
+    columns: dict[str, list] = {name: [] for name in ("frames", "template_ids", "is_new", "distances", "matched_frames",
+                                                      "possible", "experiences")}
     closures: list[Closure] = []
+    steps: list[Step] = []
     before = None
     try:
         for frame in images:
@@ -183,14 +179,14 @@ def build_map(images: Iterable, odometry: Trajectory, templates: TemplateParams,
                         (closure.matched_template, closure.matched_frame) if closure else None)
             if map_store is not None:
                 map_store.append(step)
-            state = MapState(experience_map.poses.copy(), list(experience_map.links))
+            steps.append(step)
+            state = MapState(experience_map.poses.copy(), list(experience_map.links)) if before is None else None
             result = step.apply(experience_map)
             if before is None and any(link.loop_closure for link in result.new_links):
                 before = state
             if closure is not None:
                 closures.append(closure)
-            for name, value in (("frames", seq), ("stamps", float(frame.stamp)), ("odometry", pose),
-                                ("template_ids", match.template_id), ("is_new", match.is_new),
+            for name, value in (("frames", seq), ("template_ids", match.template_id), ("is_new", match.is_new),
                                 ("distances", match.distance), ("matched_frames", match.matched_frame),
                                 ("possible", not match.is_new and seq - match.matched_frame >= consistency.recent_frames),
                                 ("experiences", result.experience)):
@@ -206,7 +202,7 @@ def build_map(images: Iterable, odometry: Trajectory, templates: TemplateParams,
             raise EvidenceError(f"the reference path has {len(reference)} poses, the odometry {len(x)}")
         reference = reference.select(arrays["frames"])
     return OfflineMap(**arrays, closures=closures, experience_map=experience_map, template_count=len(view_templates),
-                      before=before, reference=reference)
+                      steps=steps, before=before, reference=reference)
 
 
 # --- plots ------------------------------------------------------------------------------------
@@ -225,7 +221,7 @@ def plot_ids_over_frames(png_path, run: OfflineMap, radius: float, title: str = 
     top, bottom = figure.subplots(2, 1, sharex=True)
     top.step(run.frames, run.template_ids, where="post", color="C0", linewidth=1.2, label="view template")
     bottom.step(run.frames, run.experiences, where="post", color="C1", linewidth=1.2, label="experience")
-    near = np.array([run.odometry_distance(int(f), int(m)) <= radius for f, m in zip(run.frames, run.matched_frames)])
+    near = np.array([run.place_distance(int(f), int(m)) <= radius for f, m in zip(run.frames, run.matched_frames)])
     for axes, ids in ((top, run.template_ids), (bottom, run.experiences)):
         for mask, colour, label in ((run.possible & near, "C2", f"possible closure (same place, ≤ {radius:g} m)"),
                                     (run.possible & ~near, "C3", f"possible closure elsewhere (> {radius:g} m)")):
@@ -288,7 +284,7 @@ def plot_map_correction(png_path, run: OfflineMap, title: str = "") -> Path:
     right.set_aspect("equal", adjustable="datalim")
     right.grid(True, alpha=0.3)
     right.set_xlabel("x [m]")
-    right.set_title("per-frame trajectory (○ start, □ end)", fontsize="medium")
+    right.set_title("per-frame trajectory, as is (○ start, □ end)", fontsize="medium")
     right.legend(loc="best", fontsize="x-small")
     if title:
         figure.suptitle(title)

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from services.common.errors import DataError
+from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.graph import ExperienceMap, MapParams
@@ -136,6 +137,22 @@ class ExportResult:
         return {"frames": len(self.map_log.steps), "experiences": len(self.experience_map), "links": len(links),
                 "loop_closure_links": sum(link.loop_closure for link in links),
                 "torn_last_record": self.map_log.torn_last_record}
+
+
+def errors_against(map_log: MapLog, experience_map: ExperienceMap, reference: Trajectory) -> dict:
+    """Position errors (m: mean, max, rmse) of the map's input odometry and of its corrected
+    trajectory against a reference (ground truth), poses paired by stamp; both as they are
+    ("none": the same start, the map's frame is the odometry's) and SE(2)-aligned."""
+    result = {}
+    for name, traj in (("odometry", odometry_trajectory(map_log.steps)),
+                       ("corrected", corrected_trajectory(experience_map, map_log.steps))):
+        estimate, truth = metrics.associate(traj, reference)
+        result[name] = {"poses": len(estimate)}
+        for kind in ("none", "se2"):
+            errors = metrics.position_errors(estimate, truth, align=kind)
+            result[name][kind] = {"mean": float(errors.mean()), "max": float(errors.max()),
+                                  "rmse": float(np.sqrt(np.mean(errors ** 2)))}
+    return result
 
 
 def export_map(store, graph: Path | None = None, tum: Path | None = None, params: MapParams | None = None) -> ExportResult:

@@ -333,3 +333,22 @@ def test_a_killed_service_resumes_from_its_log_to_the_same_map(tmp_path):
     same_map(uninterrupted.map, restarted.map)
     assert resumed_at is not None and 0 < resumed_at < steps[-1].frame
     assert [seq for seq, *_ in map_poses(published)][-1] == steps[-1].frame
+
+
+# --- the offline build on the real NuBot sequence ---------------------------------------------
+def test_map_build_on_nubot_closes_the_loop_once_and_export_replays_it(shared_data, tmp_path, capsys):
+    folder = shared_data / "nubot_scene1"
+    out = tmp_path / "nubot"
+    assert gridslam(["map", "build", "--images", str(folder / "left"), "--odometry", str(folder / "libviso2_egomotion.csv"),
+                     "--preset", "nubot", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())["summary"]
+    assert summary["confirmed_closures"] >= 1 and summary["confirmed_closures_elsewhere"] == 0
+    assert 178 <= summary["first_confirmed"]["frame"] <= 204 and summary["first_confirmed"]["matched_frame"] <= 20
+    assert summary["loop_closure_links"] == 1
+    assert summary["odometry_end_to_start_m"] > 0.1 and summary["corrected_end_to_start_m"] < 0.02
+    for name in ("templates_experiences.png", "map_correction.png", "loop_closures.csv", "graph.json"):
+        assert (out / name).stat().st_size > 0
+    capsys.readouterr()
+    assert gridslam(["map", "export", str(out / "experience_map.log"), "--tum", str(tmp_path / "replayed.tum")]) == 0
+    built, replayed = read_tum(out / "map.tum"), read_tum(tmp_path / "replayed.tum")
+    assert np.array_equal(built.positions, replayed.positions) and np.array_equal(built.stamps, replayed.stamps)
