@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.common.config import SERVICES_DIR, load_config
+from services.common.config import load_config
 from services.common.errors import ConfigError
 from services.evaluation.results import format_table
 
@@ -67,8 +67,7 @@ def _add_params(parser, what: str) -> None:
 
 
 def _config(model, section: str, args, overrides=None):
-    preset = args.preset if args.preset and (SERVICES_DIR / section / "presets" / f"{args.preset}.toml").is_file() else None
-    return load_config(model, section, preset=preset, config_file=args.config, overrides=overrides)
+    return load_config(model, section, preset=args.preset, config_file=args.config, overrides=overrides)
 
 
 def run_export(args) -> int:
