@@ -65,29 +65,39 @@ class Journal:
             self.handle.close()
 
     def _load(self, header: dict) -> None:
-        with open(self.path, "rb") as handle:
-            lines = handle.read().split(b"\n")
-        complete, tail = lines[:-1], lines[-1]   # the part after the last newline is torn, if any
-        good = 0
-        for number, raw in enumerate(complete, start=1):
-            text, tab, crc = raw.decode("utf-8", errors="replace").rpartition("\t")
-            if not tab or f"{zlib.crc32(text.encode()):08x}" != crc:
-                if number == len(complete) and not tail:
-                    log.warning("%s: line %d: torn last record skipped (a crash while writing)", self.path, number)
-                    break
-                raise JournalError(f"{self.path}: line {number}: record is damaged (checksum mismatch)")
-            record = json.loads(text)
-            if number == 1:
-                if record != header:
-                    raise JournalError(f"{self.path}: written with {record}, not {header}; "
-                                       "use another file or the same parameters")
-            else:
-                self.records.append(record)
-            good += len(raw) + 1
-        if tail:
-            log.warning("%s: torn last record skipped (a crash while writing; %d bytes)", self.path, len(tail))
-        if good < self.path.stat().st_size:
+        records, good, _ = read_records(self.path)
+        if records and records[0] != header:
+            raise JournalError(f"{self.path}: written with {records[0]}, not {header}; "
+                               "use another file or the same parameters")
+        self.records = records[1:]
+        if good < self.path.stat().st_size:   # cut the torn record so that appends follow intact ones
             with open(self.path, "r+b") as handle:
                 handle.truncate(good)
                 if good == 0:   # the torn record was the header itself: write it again
                     handle.write(_line(header).encode())
+
+
+def read_records(path: Path) -> tuple[list[dict], int, bool]:
+    """The intact records of a journal, header first, the bytes they span, and whether a torn
+    last record was left out (logged as a warning). Only reads: a service may be appending."""
+    try:
+        with open(path, "rb") as handle:
+            lines = handle.read().split(b"\n")
+    except FileNotFoundError:
+        raise JournalError(f"{path}: no such file") from None
+    except OSError as error:
+        raise JournalError(f"{path}: cannot read ({error.strerror})") from None
+    complete, tail = lines[:-1], lines[-1]   # the part after the last newline is torn, if any
+    records, good, torn = [], 0, bool(tail)
+    for number, raw in enumerate(complete, start=1):
+        text, tab, crc = raw.decode("utf-8", errors="replace").rpartition("\t")
+        if not tab or f"{zlib.crc32(text.encode()):08x}" != crc:
+            if number == len(complete) and not tail:
+                torn = True
+                break
+            raise JournalError(f"{path}: line {number}: record is damaged (checksum mismatch)")
+        records.append(json.loads(text))
+        good += len(raw) + 1
+    if torn:
+        log.warning("%s: torn last record skipped (a crash while writing)", path)
+    return records, good, torn

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import json
 import logging
-import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from services.common.errors import DataError
+from services.common.journal import read_records
 from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
@@ -55,24 +55,9 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
     None takes the log's own parameters; otherwise they must equal the log's (the same inputs
     replayed with other parameters make another map)."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise MapExportError(f"{path}: no such map log") from None
-    except OSError as error:
-        raise MapExportError(f"{path}: cannot read the map log ({error.strerror})") from None
-    *complete, tail = data.split(b"\n")   # what follows the last newline is a torn record, if anything
-    records = []
-    for number, raw in enumerate(complete, start=1):
-        text, tab, crc = raw.decode("utf-8", errors="replace").rpartition("\t")
-        if not tab or f"{zlib.crc32(text.encode()):08x}" != crc:
-            if number == len(complete) and not tail and number > 1:
-                tail = raw
-                break
-            raise MapExportError(f"{path}: line {number}: record is damaged (checksum mismatch)")
-        records.append(json.loads(text))
-    if tail:
-        log.warning("%s: torn last record skipped (%d bytes; a write in progress or a crash)", path, len(tail))
+    if not path.is_file():
+        raise MapExportError(f"{path}: no such map log")
+    records, _, torn = read_records(path)
     if not records or records[0].get("format") != FORMAT or not isinstance(records[0].get("params"), dict):
         raise MapExportError(f"{path}: not a gridslam experience-map log")
     try:
@@ -90,7 +75,7 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
                               int(record["template"]), (int(closure[0]), int(closure[1])) if closure else None))
         except (KeyError, TypeError, ValueError, IndexError):
             raise MapExportError(f"{path}: line {number}: not a map record") from None
-    return MapLog(path, logged, steps, bool(tail))
+    return MapLog(path, logged, steps, torn)
 
 
 def graph_dict(experience_map: ExperienceMap) -> dict:
