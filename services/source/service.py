@@ -28,6 +28,10 @@ from services.source.spec import open_source
 log = logging.getLogger(__name__)
 
 WAIT_LOG_PERIOD_S = 10.0   # how often a source stalled on its window says so
+# After camera/frame regains a subscriber (the router came back), wait this long before re-sending
+# the frames in flight: every client rejoins within its retry period (runtime.py: at most 0.5 s),
+# so the re-sent frames find all consumers back, not only the first one to reconnect.
+RECONNECT_SETTLE_S = 0.5
 
 
 class SourceConfig(BaseModel):
@@ -89,12 +93,24 @@ class SourceService(Service):
         self.finished = False
         self.next_due = 0.0
         self.waiting_since: float | None = None
+        self.unreachable = False                   # camera/frame lost every subscriber after the first frame
+        self.reconnected_at: float | None = None   # when it regained one
 
     def setup(self) -> None:
         if self.window:
             if self.config.ack_topic not in TOPICS:
                 raise ValueError(f"ack_topic {self.config.ack_topic!r} is not a pipeline topic")
             self.subscribe(self.config.ack_topic, self.on_ack, drop_stale=False)
+            # Frames in flight when the router died are lost with it: send them again as soon as
+            # the consumers are reachable, instead of waiting for `resend_after` (issue 7).
+            self._entities.append(self.publisher("camera/frame").declare_matching_listener(self._on_matching))
+
+    def _on_matching(self, status) -> None:   # a Zenoh thread
+        if not status.matching:
+            self.unreachable = self.sent > 0
+        elif self.unreachable:
+            self.unreachable = False
+            self.reconnected_at = time.monotonic()
 
     def on_ack(self, message: Message) -> None:
         seq = message.header.seq
@@ -103,16 +119,13 @@ class SourceService(Service):
             self.last_progress = time.monotonic()
 
     def on_idle(self) -> None:
-        if self.in_flight and time.monotonic() - self.last_progress > self.config.resend_after:
-            log.warning("source: no acknowledgement for %.1f s; sending the %d frames in flight again (from %d)",
-                        self.config.resend_after, len(self.in_flight), next(iter(self.in_flight)))
-            # The last acknowledged frame goes first: every stage has handled it (they drop it or
-            # replay their output), and an estimator restarted downstream takes it as its previous
-            # frame, so the first frame in flight gets its true motion, not a first-frame zero.
-            for message in ([self.primer] if self.primer is not None else []) + list(self.in_flight.values()):
-                self.publish("camera/frame", message)
-            self.resent += len(self.in_flight)
-            self.last_progress = time.monotonic()
+        now = time.monotonic()
+        if self.reconnected_at is not None and now - self.reconnected_at >= RECONNECT_SETTLE_S:
+            self.reconnected_at = None
+            if self.in_flight:
+                self._resend("camera/frame has subscribers again")
+        if self.in_flight and now - self.last_progress > self.config.resend_after:
+            self._resend(f"no acknowledgement for {self.config.resend_after:.1f} s")
         if self.finished:
             if not self.in_flight or not self.window:
                 if self.config.exit_at_end:
@@ -146,6 +159,17 @@ class SourceService(Service):
             if not self.in_flight:
                 self.last_progress = time.monotonic()
             self.in_flight[frame.seq] = message
+
+    def _resend(self, reason: str) -> None:
+        log.warning("source: %s; sending the %d frames in flight again (from %d)", reason, len(self.in_flight),
+                    next(iter(self.in_flight)))
+        # The last acknowledged frame goes first: every stage has handled it (they drop it or
+        # replay their output), and an estimator restarted downstream takes it as its previous
+        # frame, so the first frame in flight gets its true motion, not a first-frame zero.
+        for message in ([self.primer] if self.primer is not None else []) + list(self.in_flight.values()):
+            self.publish("camera/frame", message)
+        self.resent += len(self.in_flight)
+        self.last_progress = time.monotonic()
 
     def extra_counters(self) -> dict[str, float]:
         extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent}
