@@ -28,6 +28,7 @@ import zenoh
 from schemas import Header, ServiceStatus, Time
 from schemas.base import Message
 from services.common import codec, topics
+from services.common.errors import GridslamError
 from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
 
 log = logging.getLogger(__name__)
@@ -48,6 +49,7 @@ class Counters:
     gaps: int = 0
     stale: int = 0
     replayed: int = 0
+    rejected: int = 0
     dropped_newest_only: int = 0
     dropped_busy: int = 0
 
@@ -227,7 +229,8 @@ class Service:
     def extra_counters(self) -> dict[str, float]:
         """Service-specific counters for the status message (override to add some)."""
         c = self.counters
-        counters = {"replayed": c.replayed, "dropped_newest_only": c.dropped_newest_only, "dropped_busy": c.dropped_busy}
+        counters = {"replayed": c.replayed, "rejected": c.rejected, "dropped_newest_only": c.dropped_newest_only,
+                    "dropped_busy": c.dropped_busy}
         return {name: value for name, value in counters.items() if value}
 
     def _serve_once(self) -> None:
@@ -267,6 +270,11 @@ class Service:
         self._current_seq = seq
         try:
             subscription.handler(message)
+        except GridslamError as error:
+            # A message that decodes but that the core cannot use (an image too small for a
+            # template, say): counted and dropped like a malformed one; the service keeps running.
+            self.counters.rejected += 1
+            log.warning("%s: rejected seq %d on %s: %s", self.name, seq, key, error)
         finally:
             self._current_seq = None
 

@@ -13,7 +13,7 @@ from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.errors import ConfigError
 from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator
-from services.egomotion.base import EgomotionError, Estimator, params_from_dict
+from services.egomotion.base import Estimator, params_from_dict
 from services.source.frames import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -42,23 +42,17 @@ class EgomotionService(Service):
         self.estimator_name = estimator_name
         self.params = params
         self.estimator: Estimator | None = None   # built on the first frame, which brings the calibration
-        self.rejected = 0
 
     def setup(self) -> None:
         self.subscribe("camera/frame", self.on_frame)
 
     def on_frame(self, message: CameraFrame) -> None:
         frame = frame_from_message(message)
-        try:
-            if self.estimator is None:
-                self.estimator = make_estimator(self.estimator_name, frame.camera, self.params)
-            increment = self.estimator.estimate(frame)
-        except EgomotionError as error:
-            # A frame this estimator cannot use (e.g. stereo given a mono frame): counted and
-            # dropped; the gap shows downstream through seq.
-            self.rejected += 1
-            log.warning("egomotion: frame %d rejected: %s", frame.seq, error)
-            return
+        # A frame this estimator cannot use (stereo given a mono frame: EgomotionError) is
+        # counted and dropped by the base class; the gap shows downstream through seq.
+        if self.estimator is None:
+            self.estimator = make_estimator(self.estimator_name, frame.camera, self.params)
+        increment = self.estimator.estimate(frame)
         self.publish("egomotion", EgoMotion(
             header=message.header.model_copy(update={"frame_id": "base_link"}),
             increment=PlanarIncrement(forward=increment.forward, left=increment.left, yaw=increment.yaw),
@@ -66,9 +60,6 @@ class EgomotionService(Service):
             quality=min(max(float(increment.quality), 0.0), 1.0), inliers=int(increment.inliers),
             match_cost=max(float(increment.match_cost), 0.0), scaled=increment.scaled, estimator=self.estimator_name,
         ))
-
-    def extra_counters(self) -> dict[str, float]:
-        return {**super().extra_counters(), "frames_rejected": self.rejected}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
