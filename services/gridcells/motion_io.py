@@ -187,7 +187,11 @@ def load_csv(path: Path) -> MotionInput:
     """Body-frame increments, world-frame velocities or the LIBVISO2 table (module docstring)."""
     rows = list(csv.reader(_read_text(path).splitlines()))
     # Skip blank and comment lines, keeping the 1-based line number of each row for messages.
-    numbered = [(number, row) for number, row in enumerate(rows, start=1) if row and "".join(row).strip() and not row[0].lstrip().startswith("#")]
+    numbered = [
+        (number, row)
+        for number, row in enumerate(rows, start=1)
+        if "".join(row).strip() and not row[0].lstrip().startswith("#")
+    ]
     if not numbered:
         raise MotionInputError(f"{path}: file is empty")
     header_line, header = numbered[0]

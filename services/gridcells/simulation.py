@@ -119,10 +119,9 @@ class FiringMap:
 
 
 def firing_map(positions: np.ndarray, activity: np.ndarray, extent_m: float, bin_m: float = 0.05, smooth_bins: float = 1.0) -> FiringMap:
-    """Rate map of one neuron: activity summed per bin over occupancy, both smoothed with a
-    Gaussian of `smooth_bins` bins first (the usual adaptive-free smoothing of grid-cell
-    studies, e.g. Sargolini et al. 2006); bins never visited are NaN. The map covers
-    [-extent_m, extent_m]² around the origin."""
+    """Rate map of one neuron: the activity summed per bin divided by the occupancy, both
+    smoothed with a Gaussian of `smooth_bins` bins first; bins never visited are NaN. The
+    map covers [-extent_m, extent_m]² around the origin, rows along y, columns along x."""
     n_bins = int(math.ceil(2 * extent_m / bin_m))
     edges = np.linspace(-extent_m, extent_m, n_bins + 1)
     occupancy, _, _ = np.histogram2d(positions[:, 0], positions[:, 1], bins=(edges, edges))
