@@ -1,4 +1,4 @@
-"""The paper's simulation (Lu et al., ROBIO 2016, Sec. IV-A): an agent moving randomly within a
+"""The paper's simulation (Lu et al., ROBIO 2016): an agent moving randomly within a
 circle of radius 2 m at up to 2.5 m/s; and the grid-cell analysis of its Fig. 4: the firing
 map of one neuron over the arena and its gridness score (Sargolini et al., Science 2006).
 
@@ -7,15 +7,12 @@ Pure numpy/scipy: walks are arrays, maps are arrays, scores are floats.
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
 from scipy import ndimage
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
