@@ -13,3 +13,8 @@ class ConfigError(GridslamError):
 
 class DataError(GridslamError):
     """An input file or dataset is missing, unreadable or malformed (the message names it)."""
+
+
+class PersistenceError(GridslamError):
+    """A service cannot write the state it must keep (a journal, a checkpoint): it stops instead of
+    going on with state a restart would lose (the message names the file)."""

@@ -16,12 +16,12 @@ import os
 import zlib
 from pathlib import Path
 
-from services.common.errors import DataError
+from services.common.errors import DataError, PersistenceError
 
 log = logging.getLogger(__name__)
 
 
-class JournalError(DataError):
+class JournalError(PersistenceError, DataError):
     """A journal that cannot be read or written (the message names the file and line)."""
 
 

@@ -28,7 +28,7 @@ import zenoh
 from schemas import Header, ServiceStatus, Time
 from schemas.base import Message
 from services.common import codec, topics
-from services.common.errors import GridslamError
+from services.common.errors import GridslamError, PersistenceError
 from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
 
 log = logging.getLogger(__name__)
@@ -50,6 +50,7 @@ class Counters:
     stale: int = 0
     replayed: int = 0
     rejected: int = 0
+    handler_errors: int = 0
     dropped_newest_only: int = 0
     dropped_busy: int = 0
 
@@ -229,8 +230,8 @@ class Service:
     def extra_counters(self) -> dict[str, float]:
         """Service-specific counters for the status message (override to add some)."""
         c = self.counters
-        counters = {"replayed": c.replayed, "rejected": c.rejected, "dropped_newest_only": c.dropped_newest_only,
-                    "dropped_busy": c.dropped_busy}
+        counters = {"replayed": c.replayed, "rejected": c.rejected, "handler_errors": c.handler_errors,
+                    "dropped_newest_only": c.dropped_newest_only, "dropped_busy": c.dropped_busy}
         return {name: value for name, value in counters.items() if value}
 
     def _serve_once(self) -> None:
@@ -270,11 +271,21 @@ class Service:
         self._current_seq = seq
         try:
             subscription.handler(message)
+        except (PersistenceError, OSError):
+            raise   # the service cannot keep its state (disk full, say): it stops, and says why
         except GridslamError as error:
             # A message that decodes but that the core cannot use (an image too small for a
             # template, say): counted and dropped like a malformed one; the service keeps running.
             self.counters.rejected += 1
             log.warning("%s: rejected seq %d on %s: %s", self.name, seq, key, error)
+        except Exception:
+            # Not a known rejection: a case the core did not foresee (a numerical corner of OpenCV
+            # on a valid but absurd frame, say). One message must not take the service down
+            # (issue 7): the traceback goes to the log, the count to the status, and the next
+            # message is served; the frame shows downstream as a gap.
+            self.counters.handler_errors += 1
+            if self.counters.handler_errors <= 10 or self.counters.handler_errors % LOG_EVERY == 0:
+                log.exception("%s: failed on seq %d on %s (%d so far)", self.name, seq, key, self.counters.handler_errors)
         finally:
             self._current_seq = None
 

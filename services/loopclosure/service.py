@@ -15,6 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import CameraFrame, LoopClosure, ViewTemplate
 from services.common.config import load_config
+from services.common.errors import PersistenceError
 from services.common.convert import image_from_msg
 from services.common.runtime import RuntimeConfig
 from services.common.journal import Journal
@@ -106,8 +107,11 @@ class LoopClosureService(Service):
             log.info("loop closure confirmed at frame %d: frame %d (template %d), %d votes", seq, closure.matched_frame,
                      closure.matched_template, closure.votes)
             if self.csv_path is not None:
-                with open(self.csv_path, "a", newline="") as handle:
-                    csv.writer(handle).writerow((seq, closure.matched_frame, closure.matched_template, closure.votes))
+                try:
+                    with open(self.csv_path, "a", newline="") as handle:
+                        csv.writer(handle).writerow((seq, closure.matched_frame, closure.matched_template, closure.votes))
+                except OSError as error:
+                    raise PersistenceError(f"{self.csv_path}: cannot append ({error.strerror or error})") from None
         self._publish(message.header, match, closure)
         # Journaled after publishing: a crash in between re-handles the frame, never loses it.
         if self.journal is not None:
