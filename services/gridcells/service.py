@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -12,15 +13,21 @@ import numpy as np
 
 from schemas import EgoMotion, GridActivity, GridPose, Twist, Vector3
 from services.common.config import load_config
-from services.common.errors import DataError
+from services.common.errors import DataError, PersistenceError
 from services.common.convert import image_to_msg, planar_pose
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.gridcells.config import GridCellsConfig
 from services.gridcells.integrator import DeadReckoning, GridCellIntegrator, auto_velocity_scale
-from services.gridcells.network import NetworkParams
+from services.gridcells.network import GridCellError, NetworkParams
 
 log = logging.getLogger(__name__)
+
+# Increments beyond these are no vehicle's motion over one frame (100 m is 360 km/h at 1 frame/s;
+# a turn beyond half a revolution is ambiguous between two frames). Integrated, they would drive
+# the pose or the network to overflow and spoil every later frame, so they are rejected.
+MAX_STEP_M = 100.0
+MAX_TURN_RAD = math.pi
 
 
 def make_integrator(config: GridCellsConfig):
@@ -38,9 +45,12 @@ def save_checkpoint(path: Path, checkpoint: dict, seq: int, stamp: float | None)
     """Write atomically (a kill mid-write leaves the previous checkpoint): arrays and numbers only."""
     arrays = {name: np.asarray(value) for name, value in checkpoint.items() if value is not None}
     tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as handle:
-        np.savez(handle, seq=seq, stamp=np.nan if stamp is None else stamp, **arrays)
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as handle:
+            np.savez(handle, seq=seq, stamp=np.nan if stamp is None else stamp, **arrays)
+        os.replace(tmp, path)
+    except OSError as error:
+        raise PersistenceError(f"{path}: cannot write the grid-cell checkpoint ({error.strerror or error})") from None
 
 
 def load_checkpoint(path: Path) -> tuple[dict, int, float | None]:
@@ -76,6 +86,9 @@ class GridCellsService(Service):
         if self.resumed_at is not None and message.header.seq <= self.resumed_at:
             return   # integrated before the restart: the checkpoint holds it
         increment = message.increment
+        if max(abs(increment.forward), abs(increment.left)) > MAX_STEP_M or abs(increment.yaw) > MAX_TURN_RAD:
+            raise GridCellError(f"increment (forward {increment.forward:.3g} m, left {increment.left:.3g} m, "
+                                f"yaw {increment.yaw:.3g} rad) exceeds {MAX_STEP_M:g} m or {MAX_TURN_RAD:.4g} rad per frame")
         step = self.integrator.step(increment.forward, increment.left, increment.yaw)
         stamp = message.header.stamp.to_seconds()
         dt = stamp - self.previous_stamp if self.previous_stamp is not None else 0.0
