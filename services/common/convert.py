@@ -8,6 +8,7 @@ import numpy as np
 
 from schemas import Image, Point, Pose, Quaternion
 from schemas.base import IMAGE_ENCODINGS
+from services.common.errors import DataError
 
 _DTYPES = {"mono8": np.uint8, "bgr8": np.uint8, "rgb8": np.uint8, "mono16": np.uint16, "32FC1": np.float32}
 
@@ -33,6 +34,9 @@ def image_from_msg(image: Image) -> np.ndarray:
     channels = 3 if image.encoding in ("bgr8", "rgb8") else 1
     rows = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.step)
     pixels = rows[:, : image.width * IMAGE_ENCODINGS[image.encoding]].copy().view(dtype)
+    if pixels.dtype.kind == "f" and not np.isfinite(pixels).all():
+        # The schema forbids NaN and infinity in every field; pixels are bytes to it, so check here.
+        raise DataError(f"{image.encoding} image of {image.width}×{image.height} has NaN or infinite pixels")
     return pixels.reshape(image.height, image.width, channels) if channels > 1 else pixels.reshape(image.height, image.width)
 
 
