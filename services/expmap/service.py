@@ -12,12 +12,22 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, ViewTemplate
 from services.common.config import load_config
 from services.common.convert import planar_pose
+from services.common.errors import DataError
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.expmap.graph import ExperienceMap, FrameResult, MapParams
 from services.expmap.store import MapStore, Step
 
 log = logging.getLogger(__name__)
+
+# Odometry beyond these is no robot's (10,000 km; a million radians of accumulated turning): such
+# a pose would overflow the map's arithmetic after it was journaled, so it is rejected before.
+MAX_COORDINATE_M = 1e7
+MAX_HEADING_RAD = 1e6
+
+
+class MapInputError(DataError):
+    """A grid pose the map cannot take (the message says which value)."""
 
 
 class ExpMapConfig(BaseModel):
@@ -65,6 +75,7 @@ class ExpMapService(Service):
         self.poses: dict[int, GridPose] = {}
         self.views: dict[int, ViewTemplate] = {}
         self.closures: dict[int, LoopClosure] = {}
+        self.skipped = 0   # frames with a pose but no view template
 
     def setup(self) -> None:
         self.subscribe("grid/pose", self.on_grid_pose)
@@ -76,6 +87,10 @@ class ExpMapService(Service):
         self.store.close()
 
     def on_grid_pose(self, message: GridPose) -> None:
+        position = message.pose.position
+        if max(abs(position.x), abs(position.y)) > MAX_COORDINATE_M or abs(message.heading) > MAX_HEADING_RAD:
+            raise MapInputError(f"grid pose ({position.x:.3g}, {position.y:.3g}) m, heading {message.heading:.3g} rad "
+                                f"is beyond {MAX_COORDINATE_M:g} m or {MAX_HEADING_RAD:g} rad")
         self.poses[message.header.seq] = message
         self._advance()
 
@@ -93,6 +108,13 @@ class ExpMapService(Service):
         while self.poses:
             seq = min(self.poses)
             view = self.views.get(seq)
+            if view is None and any(s > seq for s in self.views):
+                # Views come in frame order, so this frame's never will (loopclosure rejected it):
+                # skip it rather than hold every later frame behind it.
+                self.poses.pop(seq)
+                self.skipped += 1
+                log.warning("expmap: frame %d skipped: no view template for it, later ones arrived", seq)
+                continue
             if view is None or (view.loop_closure and seq not in self.closures):
                 return
             pose = self.poses.pop(seq)
@@ -142,7 +164,7 @@ class ExpMapService(Service):
 
     def extra_counters(self) -> dict[str, float]:
         return {**super().extra_counters(), "experiences": len(self.map), "links": len(self.map.links),
-                "frames_in_map": len(self.map.frames)}
+                "frames_in_map": len(self.map.frames), "frames_skipped": self.skipped}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
