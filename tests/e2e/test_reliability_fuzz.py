@@ -234,7 +234,7 @@ def targets(tmp_path, world, http_port: int) -> list[Target]:
 
     target = Target("viewer", "viewer", ["--http", f"127.0.0.1:{http_port}"],
                     ["egomotion", "grid/pose", "map/pose", "map/update", "loop/closure", "camera/frame", "grid/activity",
-                     "view/template"])
+                     "view/template", "status/expmap/fuzz"])
     robot = target.robot
     target.drops = True
     target.valid = [("camera/frame", frame) for frame in extreme_frames(world[0], robot, 1)]
@@ -307,6 +307,7 @@ def test_every_key_of_every_service_survives_bad_input(tmp_path):
             codec.decode(sample.payload.to_bytes(), encoding=str(sample.encoding)).header.seq))
         for target in plan if target.output]
     rng = random.Random(7)
+    entities = []
 
     def put(target: Target, topic: str, message_or_payload, encoding: str | None = None) -> None:
         if encoding is None:
@@ -317,6 +318,21 @@ def test_every_key_of_every_service_survives_bad_input(tmp_path):
 
     try:
         wait_for(lambda: {t.robot for t in plan} <= live_robots(session), timeout=120)
+        # The viewer also reads health tokens and queries the map: a token with a malformed key,
+        # and a fake expmap whose snapshot replies are garbage (each one a decode error).
+        viewer = next(t for t in plan if t.name == "viewer")
+        snapshot_key = topics.key(viewer.robot, "map/snapshot")
+
+        snapshot_replies = []
+
+        def garbage_snapshot(query: zenoh.Query) -> None:
+            viewer.sent += 1
+            snapshot_replies.append(query.key_expr)
+            query.reply(snapshot_key, b"\xc1 not a map", encoding=codec.ENCODING_PREFIX + "MapSnapshot")
+
+        entities = [session.declare_queryable(snapshot_key, garbage_snapshot),
+                    session.liveliness().declare_token(f"{topics.PREFIX}/{viewer.robot}/health/a/b/c/d"),
+                    session.liveliness().declare_token(topics.health_key(viewer.robot, "expmap", "fake"))]
         for target in plan:
             for topic in target.topics:
                 for payload, encoding in bad_payloads(topics.model_of(topic).KIND, rng):
@@ -325,6 +341,7 @@ def test_every_key_of_every_service_survives_bad_input(tmp_path):
             for topic, message in target.valid:
                 put(target, topic, message)
 
+        wait_for(lambda: snapshot_replies, timeout=30)
         # Every message sent is accounted for: decoded (then handled, rejected or stale) or counted
         # as a decode error (or, on newest-only subscriptions, dropped unread by design).
         for target in plan:
@@ -368,8 +385,8 @@ def test_every_key_of_every_service_survives_bad_input(tmp_path):
         for target in plan:
             assert target.process.poll() is None, (target.name, stop(target.process)[2][-3000:])
     finally:
-        for subscriber in subscribers:
-            subscriber.undeclare()
+        for entity in subscribers + entities:
+            entity.undeclare()
         session.close()
         for target in plan:
             if target.process is not None:
