@@ -37,6 +37,12 @@ INBOX_SIZE = 16          # samples waiting for the main thread; beyond this, pub
 REPLAY_FRAMES = 64       # frames whose outputs are kept to answer a re-sent input again
 STATUS_PERIOD_S = 1.0    # how often the status message is published
 LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors
+# After the link to the router came back, a frame that skips ahead of the last one handled waits
+# this long for the ones before it (lost with the router, sent again by the source), so that
+# frames are still handled in order. A gap that is real (a skipped file, a live camera's drops)
+# ends the wait.
+RECOVERY_S = 5.0
+MAX_HELD = 256           # frames waiting per subscription, beyond which the wait ends early
 
 
 @dataclass
@@ -81,6 +87,12 @@ class Subscription:
     seq: SeqTracker = field(default_factory=SeqTracker)
     pending: tuple[str, bytes, str] | None = None   # newest_only: the one sample kept
     lock: threading.Lock = field(default_factory=threading.Lock)
+    held: dict[int, tuple[str, Message]] = field(default_factory=dict)   # after a reconnection: seq → (key, message)
+
+    @property
+    def ordered(self) -> bool:
+        """Every frame is expected, in order (not a sparse, newest-only or replay-accepting topic)."""
+        return self.drop_stale and not self.sparse
 
 
 class Service:
@@ -110,6 +122,10 @@ class Service:
         self._last_status = 0.0
         self._current_seq: int | None = None
         self._outputs: collections.OrderedDict[int, list[tuple[str, Message]]] = collections.OrderedDict()
+        self._routers: set[str] = set()   # routers this session has a link to (Zenoh threads write it)
+        self._link_lost = False           # the last one closed
+        self._link_back = False           # ... and one opened again since
+        self._recovering_until: float | None = None   # frames after a gap wait until then
 
     # ----------------------------------------------------------------- for subclasses
     def setup(self) -> None:
@@ -207,6 +223,8 @@ class Service:
             self._entities.append(self.session.liveliness().declare_token(
                 topics.health_key(self.robot, self.name, self.instance)))
             self.queryable(f"status/{self.name}/{self.instance}", self.status)
+            self._entities.append(self.session.info.declare_transport_events_listener(self._on_transport_event,
+                                                                                      history=True))
             self.state = "running"
             log.info("%s/%s running on robot %s", self.name, self.instance, self.robot)
             while not self._stop.is_set():
@@ -234,7 +252,45 @@ class Service:
                     "dropped_newest_only": c.dropped_newest_only, "dropped_busy": c.dropped_busy}
         return {name: value for name, value in counters.items() if value}
 
+    def _on_transport_event(self, event) -> None:   # a Zenoh thread
+        if event.transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        zid = str(event.transport.zid)
+        if event.kind == zenoh.SampleKind.DELETE:
+            self._routers.discard(zid)
+            self._link_lost = self._link_lost or not self._routers
+        else:
+            self._routers.add(zid)
+            self._link_back = self._link_lost
+
+    def _replay_after_reconnection(self) -> None:
+        """Publish the outputs of the last REPLAY_FRAMES frames again, in frame order, before anything new.
+
+        Outputs still queued when the link closed (the router restarted, or this process was
+        stopped beyond its lease and the router dropped it) are lost, and the frames handled
+        after the link is back would get through first: downstream would see a gap, then count
+        the lost frames, re-sent later, as stale, and lose them. Replayed first, they arrive in
+        order; what downstream already has is stale to it and costs nothing (issue 7)."""
+        self._link_lost = self._link_back = False
+        count = 0
+        for outputs in list(self._outputs.values()):
+            for topic, output in outputs:
+                self._send(topic, output)
+                count += 1
+        self.counters.replayed += count
+        log.warning("%s: the link to the router was lost and is back; %d recent output(s) published again",
+                    self.name, count)
+
     def _serve_once(self) -> None:
+        if self._link_lost:
+            if not self._link_back:
+                # No router: what this service would publish now is lost, so its inbox waits.
+                self._stop.wait(max(self.idle_timeout, 0.01))
+                return
+            self._replay_after_reconnection()
+            self._recovering_until = time.monotonic() + RECOVERY_S
+        if self._recovering_until is not None and time.monotonic() > self._recovering_until:
+            self._end_recovery()
         try:
             index, item = self._inbox.get(timeout=self.idle_timeout) if self.idle_timeout > 0 else self._inbox.get_nowait()
         except queue.Empty:
@@ -255,6 +311,38 @@ class Service:
                 log.warning("%s: dropped message on %s (%d so far): %s", self.name, key, self.counters.decode_errors, error)
             return
         self.counters.received += 1
+        seq = message.header.seq
+        last = subscription.seq.last
+        if self._recovering_until is not None and subscription.ordered and last is not None and seq > last + 1:
+            # Frames lost with the router come again after this one: it waits for them.
+            if not subscription.held:
+                log.warning("%s: seq %d follows %d on %s after a reconnection; waiting up to %.0f s for the frames between",
+                            self.name, seq, last, key, RECOVERY_S)
+            if seq in subscription.held:
+                self.counters.stale += 1   # it came twice while waiting: once is enough
+                return
+            subscription.held[seq] = (key, message)
+            if len(subscription.held) > MAX_HELD:
+                self._end_recovery()
+            return
+        self._deliver(subscription, key, message)
+        self._release(subscription)
+
+    def _release(self, subscription: Subscription, everything: bool = False) -> None:
+        """Handle the held frames that now follow on (all of them, in order, when `everything`)."""
+        while subscription.held:
+            seq = min(subscription.held)
+            if not everything and seq > subscription.seq.last + 1:
+                return
+            self._deliver(subscription, *subscription.held.pop(seq))
+
+    def _end_recovery(self) -> None:
+        self._recovering_until = None
+        for subscription in self._subscriptions:
+            self._release(subscription, everything=True)
+
+    def _deliver(self, subscription: Subscription, key: str, message: Message) -> None:
+        """Check `seq` (stale: replay the outputs; a gap: count it) and call the handler."""
         seq = message.header.seq
         missing, stale = subscription.seq.check(seq)
         if stale and subscription.drop_stale:
