@@ -8,6 +8,7 @@ restarting any service that dies → query statuses and the map → stop everyth
 
 from __future__ import annotations
 
+import collections
 import logging
 import os
 import signal
@@ -36,6 +37,11 @@ log = logging.getLogger(__name__)
 STARTUP_TIMEOUT_S = 120.0   # services settle networks and load models before their token appears
 STOP_TIMEOUT_S = 5.0
 RESEND_AFTER_S = 2.0        # a stage restarted by the runner is back within this; then frames in flight go again
+# A child that exits this many times in a row with no frame completed in between fails for a
+# reason a restart does not cure (a full disk, a bad file): the run stops and quotes it.
+RESTARTS_WITHOUT_PROGRESS = 3
+TAIL_LINES = 20             # last lines of each child's output kept in memory
+LIVENESS_CHECK_S = 2.0      # while no frame completes, how often the stages' health tokens are checked
 MAP_LOG = "experience_map.log"           # the service state files in the results folder, so that a
 TEMPLATE_LOG = "view_templates.log"      # service the runner restarts resumes where it stopped
 GRID_CHECKPOINT = "gridcells.checkpoint.npz"
@@ -78,13 +84,20 @@ class Child:
     log_path: Path
     process: subprocess.Popen | None = None
     restarts: int = 0
-    log_file: object = None
+    seen: bool = False                # its health token was seen since its last start
+    exits_without_progress: int = 0   # exits since a frame last completed
+    tail: collections.deque = field(default_factory=lambda: collections.deque(maxlen=TAIL_LINES))
+    readers: list[threading.Thread] = field(default_factory=list)
 
 
 @dataclass
 class Supervisor:
     """Starts, watches, restarts and stops the run's processes (subprocesses: never a fork of a
-    process that has a Zenoh session open)."""
+    process that has a Zenoh session open).
+
+    A child's output comes through a pipe: a thread copies it to the child's log file and keeps
+    its last lines, so the runner can quote why a child failed even when the log cannot be
+    written (a full disk)."""
 
     log_dir: Path
     children: dict[str, Child] = field(default_factory=dict)
@@ -93,13 +106,41 @@ class Supervisor:
         child = self.children.get(name) or Child(name, args, self.log_dir / f"{name}.log")
         child.args = args
         self.children[name] = child
-        child.log_file = open(child.log_path, "a")
         # One BLAS thread per service: the services are single-threaded pipelines stages sharing
         # the cores, and spinning BLAS threads on busy cores slow a 128×128 SVD a hundredfold.
         env = {**os.environ, "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS", "1")}
-        child.process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=child.log_file,
+        child.process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        child.seen = False
+        reader = threading.Thread(target=self._copy_output, args=(child, child.process.stdout), daemon=True,
+                                  name=f"{name} output")
+        reader.start()
+        child.readers = [r for r in child.readers if r.is_alive()] + [reader]
         return child
+
+    @staticmethod
+    def _copy_output(child: Child, stream) -> None:
+        try:
+            log_file = open(child.log_path, "ab")
+        except OSError as error:
+            log.warning("%s: cannot write its log %s (%s)", child.name, child.log_path, error.strerror)
+            log_file = None
+        with stream:
+            for line in stream:
+                child.tail.append(line.decode(errors="replace").rstrip())
+                if log_file is None:
+                    continue
+                try:
+                    log_file.write(line)
+                    log_file.flush()
+                except OSError as error:
+                    log.warning("%s: cannot write its log %s (%s)", child.name, child.log_path, error.strerror)
+                    log_file = None   # the last lines are still kept in memory
+        if log_file is not None:
+            try:
+                log_file.close()
+            except OSError:
+                pass
 
     def exited(self, name: str) -> int | None:
         child = self.children[name]
@@ -108,21 +149,31 @@ class Supervisor:
     def restart(self, name: str, args: list[str] | None = None) -> None:
         child = self.children[name]
         child.restarts += 1
-        child.log_file.close()
+        child.exits_without_progress += 1
         log.warning("%s exited with code %s; restart %d", name, child.process.returncode, child.restarts)
+        if child.exits_without_progress > RESTARTS_WITHOUT_PROGRESS:
+            raise RunError(f"{name} exited {child.exits_without_progress} times (last code {child.process.returncode}) "
+                           f"with no frame completed in between: {self.log_tail(name, 1) or 'no output'} "
+                           f"(log: {child.log_path})")
         self.start(name, args or child.args)
 
+    def progressed(self) -> None:
+        """A frame completed: the restarts so far did their job."""
+        for child in self.children.values():
+            child.exits_without_progress = 0
+
     def log_tail(self, name: str, lines: int = 5) -> str:
-        try:
-            return " | ".join(self.children[name].log_path.read_text().strip().splitlines()[-lines:])
-        except OSError:
-            return ""
+        child = self.children[name]
+        for reader in child.readers:   # the child has exited: let its last lines arrive
+            reader.join(timeout=1.0)
+        return " | ".join(list(child.tail)[-lines:])
 
     def stop(self, names: list[str]) -> None:
         """SIGTERM the named children together, SIGKILL what is left after STOP_TIMEOUT_S."""
         running = [self.children[n] for n in names if n in self.children and self.children[n].process.poll() is None]
         for child in running:
             child.process.send_signal(signal.SIGTERM)
+            child.process.send_signal(signal.SIGCONT)   # a stopped child must run to see the SIGTERM
         deadline = time.monotonic() + STOP_TIMEOUT_S
         for child in running:
             try:
@@ -132,8 +183,8 @@ class Supervisor:
                 child.process.kill()
                 child.process.wait()
         for name in names:
-            if name in self.children and self.children[name].log_file:
-                self.children[name].log_file.close()
+            for reader in self.children[name].readers if name in self.children else ():
+                reader.join(timeout=1.0)
 
 
 def endpoint_port(endpoint: str) -> tuple[str, int]:
@@ -269,8 +320,11 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
             if supervisor.exited(name) is not None:
                 raise RunError(f"service {name} exited at start-up (code {supervisor.exited(name)}): "
                                f"{supervisor.log_tail(name)} (log: {supervisor.children[name].log_path})")
-        missing = set(stages) - recorder.live_services()
+        live = recorder.live_services()
+        missing = set(stages) - live
         if not missing:
+            for name in stages:
+                supervisor.children[name].seen = True
             return
         if time.monotonic() > deadline:
             raise RunError(f"services {sorted(missing)} did not come up within {STARTUP_TIMEOUT_S:.0f} s")
@@ -279,11 +333,13 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
 
 def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> None:
     last_done, last_change = -1, time.monotonic()
+    last_liveness_check, missed, silent = 0.0, set(), set()
     while not stop_event.is_set():
         done = recorder.count(ack_topic)
         now = time.monotonic()
         if done != last_done:
             last_done, last_change = done, now
+            supervisor.progressed()
         if progress is not None:
             progress(done, total)
         code = supervisor.exited("source")
@@ -300,7 +356,27 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
                 supervisor.restart(name)
         if "router" in supervisor.children and supervisor.exited("router") is not None:
             supervisor.restart("router")
+        if now - last_change > LIVENESS_CHECK_S and now - last_liveness_check > LIVENESS_CHECK_S:
+            # No progress: say which running stage left the network (its lease expired: stopped,
+            # hung, or cut off). It may come back (SIGCONT, network healed) and the run resumes.
+            last_liveness_check = now
+            live = recorder.live_services()
+            children = [supervisor.children[name] for name in ["source", *stages]]
+            for child in children:
+                child.seen = child.seen or child.name in live
+            # A child not seen since it (re)started is still starting; with no router, no token
+            # is in sight at all.
+            absent = {c.name for c in children if c.seen and c.name not in live and c.process.poll() is None} \
+                if live else set()
+            gone, missed = absent & missed, absent   # absent from two checks in a row: not a late reply
+            for name in sorted(gone - silent):
+                log.warning("%s left the network although its process runs (stopped or hung?); waiting up to "
+                            "%.0f s for it", name, config.stall_timeout)
+            for name in sorted(silent - gone):
+                log.warning("%s is back on the network", name)
+            silent = gone
         if now - last_change > config.stall_timeout:
-            raise RunError(f"no frame completed for {config.stall_timeout:.0f} s (last acknowledged: {acked}); "
+            note = f"; not on the network although running (stopped or hung?): {', '.join(sorted(silent))}" if silent else ""
+            raise RunError(f"no frame completed for {config.stall_timeout:.0f} s (last acknowledged: {acked}){note}; "
                            f"see the logs in {supervisor.log_dir}")
         time.sleep(0.2)
