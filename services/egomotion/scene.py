@@ -16,30 +16,15 @@ import cv2
 import numpy as np
 
 from services.egomotion.base import invert_transform, transform_from_increment
+from services.source.frames import Camera
 
 TEXELS_PER_M = 160.0
 TEXTURE_SIZE = 1024
 
 
-@dataclass(frozen=True)
-class PinholeCamera:
-    """The same fields as the source service's Camera (duck-typed by the estimators)."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    baseline: float = 0.0
-    width: int = 0
-    height: int = 0
-
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-
-def pinhole(width: int, height: int, fov_deg: float = 70.0, baseline: float = 0.12) -> PinholeCamera:
+def pinhole(width: int, height: int, fov_deg: float = 70.0, baseline: float = 0.12) -> Camera:
     fx = (width / 2.0) / np.tan(np.radians(fov_deg) / 2.0)
-    return PinholeCamera(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0, baseline, width, height)
+    return Camera(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0, baseline, width, height)
 
 
 @dataclass(frozen=True)
@@ -50,7 +35,7 @@ class SceneFrame:
     stamp: float
     left: np.ndarray
     right: np.ndarray | None = None
-    camera: PinholeCamera | None = None
+    camera: Camera | None = None
     ground_truth: np.ndarray | None = None
     odometry: tuple[float, float, float] | None = None
 
@@ -65,7 +50,7 @@ class BoxRoom:
         rng = np.random.default_rng(seed)
         self.textures = [_texture(rng) for _ in range(6)]
 
-    def render(self, camera: PinholeCamera, pose: np.ndarray, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    def render(self, camera: Camera, pose: np.ndarray, noise: float = 0.0, seed: int = 0) -> np.ndarray:
         """The uint8 grey image seen by ``camera`` at ``pose`` (camera-to-room)."""
         width, height = camera.width, camera.height
         u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
@@ -100,7 +85,7 @@ class BoxRoom:
             image += np.random.default_rng(seed).normal(0.0, noise, image.shape).astype(np.float32)
         return np.clip(image, 0, 255).astype(np.uint8)
 
-    def frame(self, seq: int, camera: PinholeCamera, pose: np.ndarray, stereo: bool = False, **extra) -> SceneFrame:
+    def frame(self, seq: int, camera: Camera, pose: np.ndarray, stereo: bool = False, **extra) -> SceneFrame:
         left = self.render(camera, pose, noise=1.0, seed=seq)
         right = None
         if stereo:
@@ -135,7 +120,7 @@ def motion_pose(forward: float = 0.0, left: float = 0.0, yaw: float = 0.0) -> np
 
 def sequence(
     increments: list[tuple[float, float, float]],
-    camera: PinholeCamera,
+    camera: Camera,
     *,
     stereo: bool = False,
     with_odometry: bool = False,

@@ -10,7 +10,8 @@ import pytest
 
 from services.egomotion import EgomotionError, make_estimator
 from services.egomotion.base import increment_from_transform
-from services.egomotion.scene import PinholeCamera, SceneFrame, pinhole, sequence
+from services.egomotion.scene import SceneFrame, pinhole, sequence
+from services.source.frames import Camera
 
 CAMERA = pinhole(320, 240, fov_deg=70.0, baseline=0.12)
 PARAMS = {"bucket_size_px": 32}
@@ -81,7 +82,7 @@ def test_nubot_first_frames_match_libviso2(shared_data):
     LIBVISO2's (../shared/data/nubot_scene1/libviso2_egomotion.csv)."""
     folder = shared_data / "nubot_scene1"
     rows = list(csv.DictReader((folder / "libviso2_egomotion.csv").open()))
-    camera = PinholeCamera(493.86945, 493.86945, 320.33392, 244.18816, 0.11996, 640, 480)
+    camera = Camera(493.86945, 493.86945, 320.33392, 244.18816, 0.11996, 640, 480)
     span = range(40, 53)  # driving and turning (the first frames are almost still)
     frames = [
         SceneFrame(
