@@ -65,6 +65,14 @@ class Journal:
             self.handle.close()
 
     def _load(self, header: dict) -> None:
+        expected = _line(header).encode()
+        with open(self.path, "rb") as handle:
+            first = handle.readline()
+        if not (expected.startswith(first) or first.startswith(expected.split(b",")[0])):
+            # Neither this kind of journal's header (maybe torn, or damaged after its format)
+            # nor a prefix of it: some other file, given by mistake. It is left untouched.
+            raise JournalError(f"{self.path}: not a {header.get('format', 'gridslam')} journal (line 1 is no header of "
+                               "one); use another file")
         records, good, _ = read_records(self.path)
         if records and records[0] != header:
             raise JournalError(f"{self.path}: written with {records[0]}, not {header}; "
