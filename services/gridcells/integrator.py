@@ -80,7 +80,49 @@ def _body_to_world(forward: float, left: float, heading: float) -> tuple[float, 
     return forward * c - left * s, forward * s + left * c
 
 
-class GridCellIntegrator:
+class PathIntegrator:
+    """What both integrators share: the head-direction integration of yaw (heading += yaw, then
+    the body-frame step is rotated into the world by the new heading, as the authors' code does),
+    the pose, and the counters. Subclasses turn a world-frame displacement into a step."""
+
+    def __init__(self, heading0: float = 0.0):
+        _finite(heading0=heading0)
+        self._pose = Pose2D(0.0, 0.0, _wrap(heading0))
+        self.frames = 0
+        self.saturations = 0
+
+    @property
+    def pose(self) -> Pose2D:
+        return self._pose
+
+    def step(self, forward: float, left: float, yaw: float) -> GridStep:
+        """One frame of body-frame increments (input units and rad per frame)."""
+        _finite(forward=forward, left=left, yaw=yaw)
+        heading = _wrap(self._pose.heading + yaw)
+        vx, vy = _body_to_world(forward, left, heading)
+        return self._advance(vx, vy, heading)
+
+    def step_world(self, vx: float, vy: float, heading: float | None = None) -> GridStep:
+        """One frame of world-frame displacement (the authors' network input); ``heading``,
+        when given, becomes the pose's heading."""
+        _finite(vx=vx, vy=vy, heading=heading)
+        return self._advance(vx, vy, self._pose.heading if heading is None else _wrap(heading))
+
+    def _advance(self, vx: float, vy: float, heading: float) -> GridStep:
+        raise NotImplementedError
+
+    def checkpoint(self) -> dict:
+        """What evolves from frame to frame; restore() on a fresh integrator of the same
+        parameters resumes exactly."""
+        return {"pose": (self._pose.x, self._pose.y, self._pose.heading), "frames": self.frames,
+                "saturations": self.saturations}
+
+    def restore(self, checkpoint: dict) -> None:
+        self._pose = Pose2D(*(float(v) for v in checkpoint["pose"]))
+        self.frames, self.saturations = int(checkpoint["frames"]), int(checkpoint["saturations"])
+
+
+class GridCellIntegrator(PathIntegrator):
     """The grid-cell odometry. ``decoder`` is "paper", "fft" or "subpixel" (see decoders.py).
 
     ``paper`` reproduces the authors' code: a float64 network (their doubles), and the first
@@ -109,7 +151,7 @@ class GridCellIntegrator:
             raise GridCellError(f"unknown decoder '{decoder}': choose one of {', '.join(DECODERS)}")
         if not (math.isfinite(velocity_scale) and velocity_scale > 0):
             raise GridCellError(f"velocity scale {velocity_scale}: must be a positive number (network units per metre)")
-        _finite(heading0=heading0)
+        super().__init__(heading0)
         self.decoder = decoder
         self.velocity_scale = float(velocity_scale)
         self.search = int(search)
@@ -117,31 +159,11 @@ class GridCellIntegrator:
         self.params = self.network.params
         self._decode = DECODERS[decoder]
         self._previous = None if decoder == "paper" else self.network.field
-        self._pose = Pose2D(0.0, 0.0, _wrap(heading0))
-        self.frames = 0
-        self.saturations = 0
-
-    @property
-    def pose(self) -> Pose2D:
-        return self._pose
 
     @property
     def activity(self) -> np.ndarray:
         """The current rectified field f (n×n copy)."""
         return self.network.field
-
-    def step(self, forward: float, left: float, yaw: float) -> GridStep:
-        """One frame of body-frame increments (input units and rad per frame)."""
-        _finite(forward=forward, left=left, yaw=yaw)
-        heading = _wrap(self._pose.heading + yaw)
-        vx, vy = _body_to_world(forward, left, heading)
-        return self._advance(vx, vy, heading)
-
-    def step_world(self, vx: float, vy: float, heading: float | None = None) -> GridStep:
-        """One frame of world-frame displacement (the authors' network input); ``heading``,
-        when given, becomes the pose's heading."""
-        _finite(vx=vx, vy=vy, heading=heading)
-        return self._advance(vx, vy, self._pose.heading if heading is None else _wrap(heading))
 
     def _advance(self, vx: float, vy: float, heading: float) -> GridStep:
         scale = self.velocity_scale
@@ -169,52 +191,22 @@ class GridCellIntegrator:
         return GridStep(self._pose, (dx, dy), step_length, saturated)
 
     def checkpoint(self) -> dict:
-        """What evolves from frame to frame (network activity, the last field, pose, counters);
-        restore() on a fresh integrator of the same parameters resumes exactly."""
-        return {"state": self.network.state, "previous": self._previous,
-                "pose": (self._pose.x, self._pose.y, self._pose.heading), "frames": self.frames,
-                "saturations": self.saturations}
+        """The pose and counters, the network activity and the last field."""
+        return {**super().checkpoint(), "state": self.network.state, "previous": self._previous}
 
     def restore(self, checkpoint: dict) -> None:
+        super().restore(checkpoint)
         self.network.state = checkpoint["state"]
         self._previous = checkpoint["previous"]
-        self._pose = Pose2D(*(float(v) for v in checkpoint["pose"]))
-        self.frames, self.saturations = int(checkpoint["frames"]), int(checkpoint["saturations"])
 
 
-class DeadReckoning:
+class DeadReckoning(PathIntegrator):
     """The baseline: the same inputs and heading convention, integrated directly."""
-
-    def __init__(self, heading0: float = 0.0):
-        _finite(heading0=heading0)
-        self._pose = Pose2D(0.0, 0.0, _wrap(heading0))
-        self.frames = 0
-        self.saturations = 0
-
-    @property
-    def pose(self) -> Pose2D:
-        return self._pose
-
-    def step(self, forward: float, left: float, yaw: float) -> GridStep:
-        _finite(forward=forward, left=left, yaw=yaw)
-        heading = _wrap(self._pose.heading + yaw)
-        return self._advance(*_body_to_world(forward, left, heading), heading)
-
-    def step_world(self, vx: float, vy: float, heading: float | None = None) -> GridStep:
-        _finite(vx=vx, vy=vy, heading=heading)
-        return self._advance(vx, vy, self._pose.heading if heading is None else _wrap(heading))
 
     def _advance(self, vx: float, vy: float, heading: float) -> GridStep:
         self.frames += 1
         self._pose = Pose2D(self._pose.x + vx, self._pose.y + vy, heading)
         return GridStep(self._pose, (0.0, 0.0), math.hypot(vx, vy), False)
-
-    def checkpoint(self) -> dict:
-        return {"pose": (self._pose.x, self._pose.y, self._pose.heading), "frames": self.frames}
-
-    def restore(self, checkpoint: dict) -> None:
-        self._pose = Pose2D(*(float(v) for v in checkpoint["pose"]))
-        self.frames = int(checkpoint["frames"])
 
 
 def auto_velocity_scale(speeds_m_per_frame, params: NetworkParams = NetworkParams(), target_shift: float = TARGET_SHIFT) -> float:
