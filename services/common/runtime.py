@@ -102,7 +102,8 @@ def zenoh_config(runtime: RuntimeConfig) -> zenoh.Config:
     except ConfigError:
         raise
     except Exception as error:  # zenoh raises ZError or ValueError with its own text
-        raise ConfigError(f"invalid Zenoh configuration: {error}") from None
+        # (Zenoh's parser errors span several lines; the message must stay one.)
+        raise ConfigError(f"invalid Zenoh configuration: {' '.join(str(error).split())}") from None
     return config
 
 
@@ -122,7 +123,7 @@ def open_session(runtime: RuntimeConfig, stop: threading.Event | None = None) ->
         except Exception as error:
             if stop is None:
                 raise ConfigError(f"cannot open a Zenoh session ({runtime.mode}, connect {runtime.connect}, "
-                                  f"listen {runtime.listen}): {error}") from None
+                                  f"listen {runtime.listen}): {' '.join(str(error).split())}") from None
             if attempt == 1:
                 log.warning("waiting for a Zenoh router at %s (%s)", ", ".join(runtime.connect), error)
             if stop.wait(0.2):
