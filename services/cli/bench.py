@@ -12,6 +12,7 @@ BENCHMARKS: dict[str, str] = {
     "egomotion": "services.egomotion.bench",
     "viewer": "services.viewer.bench",
     "pipeline": "services.pipeline.bench",
+    "load": "services.pipeline.load",
     "loopclosure": "services.loopclosure.bench",
 }
 
