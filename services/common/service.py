@@ -126,6 +126,7 @@ class Service:
         self._link_lost = False           # the last one closed
         self._link_back = False           # ... and one opened again since
         self._recovering_until: float | None = None   # frames after a gap wait until then
+        self._gap_events = 0
 
     # ----------------------------------------------------------------- for subclasses
     def setup(self) -> None:
@@ -354,7 +355,10 @@ class Service:
             return
         if missing and not subscription.sparse:
             self.counters.gaps += missing
-            log.warning("%s: %d frame(s) missing before seq %d on %s", self.name, missing, seq, key)
+            self._gap_events += 1
+            if self._gap_events <= 10 or self._gap_events % LOG_EVERY == 0:   # a live camera's drops: one a frame
+                log.warning("%s: %d frame(s) missing before seq %d on %s (%d missing so far)", self.name, missing, seq,
+                            key, self.counters.gaps)
         self.last_seq = max(self.last_seq, seq)
         self._current_seq = seq
         try:
