@@ -2,7 +2,9 @@
 
 Offline replay loses nothing: pipeline topics use congestion control BLOCK, and the source keeps
 at most `window` frames in flight, counting a frame done when its `ack_topic` message (by
-default `map/pose`, the last stage) arrives. A live camera keeps only the newest frame instead.
+default `map/pose`, the last stage) arrives. A live camera keeps at most `live_window` frames in
+flight and then takes the camera's newest frame: the frames the pipeline has no time for are
+dropped at the camera, so none waits in a queue on the way and latency stays bounded.
 """
 
 from __future__ import annotations
@@ -51,6 +53,9 @@ class SourceConfig(BaseModel):
     step: int = Field(1, ge=1, description="Take every step-th frame.")
     rate: float = Field(0.0, ge=0.0, description="Frames per second to publish at; 0: as fast as the window allows.")
     window: int = Field(8, ge=0, description="Frames in flight awaiting ack_topic before the source waits; 0: no flow control.")
+    live_window: int = Field(
+        2, ge=0, description="The same for a live camera, which then takes its newest frame: the frames the pipeline "
+                             "has no time for are dropped at the camera, not queued on the way (0: no flow control).")
     ack_topic: str = Field("map/pose", description="Topic whose messages mark a frame as processed by the pipeline.")
     resend_after: float = Field(
         5.0, gt=0, description="Seconds without an acknowledgement after which the frames in flight are sent again "
@@ -83,7 +88,8 @@ class SourceService(Service):
         self.config = config
         self.frames = frames
         self.live = bool(getattr(frames, "live", False))
-        self.window = 0 if self.live else config.window
+        self.window = config.live_window if self.live else config.window
+        self.abandoned = 0   # live: frames in flight given up after resend_after without an acknowledgement
         self.iterator = iter(frames)
         self.in_flight: collections.OrderedDict[int, CameraFrame] = collections.OrderedDict()
         self.last_progress = time.monotonic()
@@ -100,7 +106,8 @@ class SourceService(Service):
         if self.window:
             if self.config.ack_topic not in TOPICS:
                 raise ValueError(f"ack_topic {self.config.ack_topic!r} is not a pipeline topic")
-            self.subscribe(self.config.ack_topic, self.on_ack, drop_stale=False)
+            # (A live camera's frames skip the ones it dropped: no gap to count on their acknowledgements.)
+            self.subscribe(self.config.ack_topic, self.on_ack, drop_stale=False, sparse=self.live)
             # Frames in flight when the router died are lost with it: send them again as soon as
             # the consumers are reachable, instead of waiting for `resend_after` (issue 7).
             self._entities.append(self.publisher("camera/frame").declare_matching_listener(self._on_matching))
@@ -161,6 +168,12 @@ class SourceService(Service):
             self.in_flight[frame.seq] = message
 
     def _resend(self, reason: str) -> None:
+        if self.live:   # old frames of a live camera are worth nothing: make room for the newest
+            log.warning("source: %s; giving up the %d frames in flight (live camera)", reason, len(self.in_flight))
+            self.abandoned += len(self.in_flight)
+            self.in_flight.clear()
+            self.last_progress = time.monotonic()
+            return
         log.warning("source: %s; sending the %d frames in flight again (from %d)", reason, len(self.in_flight),
                     next(iter(self.in_flight)))
         # The last acknowledged frame goes first: every stage has handled it (they drop it or
@@ -175,6 +188,7 @@ class SourceService(Service):
         extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent}
         if self.live:
             extra["frames_dropped"] = getattr(self.frames, "frames_dropped", 0)
+            extra["frames_abandoned"] = self.abandoned
         return {**super().extra_counters(), **extra}
 
     def _subscribers_ready(self) -> bool:
@@ -205,12 +219,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--step", type=int, help="take every step-th frame")
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
     parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control)")
+    parser.add_argument("--live-window", type=int, help="frames in flight from a live camera (default 2; 0: no flow control)")
     parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
     parser.add_argument("--resend-after", type=float, help="seconds without acknowledgement before resending (default 5)")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
-    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "ack_topic",
+    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
               "resend_after")
     config = load_config(SourceConfig, "source", config_file=args.config,
                          overrides={name: getattr(args, name) for name in fields})
