@@ -76,12 +76,14 @@ def test_disk_full_during_a_run_is_one_line_and_the_map_reloads(tmp_path, mounts
     done = subprocess.run(run_args(out, "--n-frames", "1000"), cwd=REPO, capture_output=True, text=True, timeout=300)
     elapsed = time.monotonic() - started
     line = one_error_line(done, "run")
+    print(f"after {elapsed:.1f} s: {line}")
     # The service whose file filled first is named, with the file; the run did not wait out its
     # stall timeout (60 s) but stopped after a few restarts that could not help.
     assert "No space left on device" in line and str(out) in line and "exited 4 times" in line, line
     assert elapsed < 60, elapsed
     log = read_log(out / "experience_map.log")
     frames = [step.frame for step in log.steps]
+    print(f"the map log holds frames 0 to {frames[-1]}, each once")
     assert len(frames) >= 20 and frames == list(range(len(frames)))
     export = subprocess.run(GRIDSLAM + ["map", "export", str(out / "experience_map.log"), "--graph", str(tmp_path / "map.json"),
                                         "--tum", str(tmp_path / "map.tum")], cwd=REPO, capture_output=True, text=True, timeout=120)

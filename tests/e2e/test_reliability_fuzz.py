@@ -352,6 +352,8 @@ def test_every_key_of_every_service_survives_bad_input(tmp_path):
             else:
                 assert status.received == len(target.valid) and status.decode_errors == target.bad, (target.name, status)
             assert status.stale == target.stale, (target.name, status)
+            print(f"{target.name}: sent {target.sent} ({target.bad} bad): received {status.received}, decode errors "
+                  f"{status.decode_errors}, stale {status.stale}, {status.extra}")
             refused = status.extra.get("rejected", 0) + status.extra.get("handler_errors", 0)
             if not target.drops:   # (the viewer may drop a bad frame unread before it is refused)
                 assert refused == target.rejected if target.rejected is not None else refused >= 1, (target.name, status)
