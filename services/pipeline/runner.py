@@ -148,13 +148,13 @@ class Supervisor:
 
     def restart(self, name: str, args: list[str] | None = None) -> None:
         child = self.children[name]
-        child.restarts += 1
         child.exits_without_progress += 1
-        log.warning("%s exited with code %s; restart %d", name, child.process.returncode, child.restarts)
         if child.exits_without_progress > RESTARTS_WITHOUT_PROGRESS:
             raise RunError(f"{name} exited {child.exits_without_progress} times (last code {child.process.returncode}) "
                            f"with no frame completed in between: {self.log_tail(name, 1) or 'no output'} "
                            f"(log: {child.log_path})")
+        child.restarts += 1
+        log.warning("%s exited with code %s; restart %d", name, child.process.returncode, child.restarts)
         self.start(name, args or child.args)
 
     def progressed(self) -> None:
