@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 INBOX_SIZE = 16          # samples waiting for the main thread; beyond this, publishers are pushed back
 REPLAY_FRAMES = 64       # frames whose outputs are kept to answer a re-sent input again
 STATUS_PERIOD_S = 1.0    # how often the status message is published
-LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors
+LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors, gaps, rejections
 # After the link to the router came back, a frame that skips ahead of the last one handled waits
 # this long for the ones before it (lost with the router, sent again by the source), so that
 # frames are still handled in order. A gap that is real (a skipped file, a live camera's drops)
@@ -369,7 +369,8 @@ class Service:
             # A message that decodes but that the core cannot use (an image too small for a
             # template, say): counted and dropped like a malformed one; the service keeps running.
             self.counters.rejected += 1
-            log.warning("%s: rejected seq %d on %s: %s", self.name, seq, key, error)
+            if self.counters.rejected <= 10 or self.counters.rejected % LOG_EVERY == 0:   # (maybe every frame)
+                log.warning("%s: rejected seq %d on %s (%d so far): %s", self.name, seq, key, self.counters.rejected, error)
         except Exception:
             # Not a known rejection: a case the core did not foresee (a numerical corner of OpenCV
             # on a valid but absurd frame, say). One message must not take the service down
