@@ -18,7 +18,8 @@ import time
 import numpy as np
 
 from services.egomotion import ESTIMATORS, make_estimator
-from services.egomotion.scene import BoxRoom, SceneFrame, motion_pose, pinhole
+from services.source.frames import Frame
+from services.egomotion.scene import BoxRoom, motion_pose, pinhole
 
 # (label, width, height, horizontal field of view in degrees, stereo baseline in metres)
 SIZES = (
@@ -27,7 +28,7 @@ SIZES = (
 )
 
 
-def frames_for(width: int, height: int, fov_deg: float, baseline: float, count: int) -> list[SceneFrame]:
+def frames_for(width: int, height: int, fov_deg: float, baseline: float, count: int) -> list[Frame]:
     camera = pinhole(width, height, fov_deg, baseline)
     room = BoxRoom(seed=0, half_width=4.0, half_depth=12.0)
     pose = np.eye(4)
@@ -39,7 +40,7 @@ def frames_for(width: int, height: int, fov_deg: float, baseline: float, count: 
     return frames
 
 
-def time_estimator(name: str, frames: list[SceneFrame], repeats: int) -> list[float]:
+def time_estimator(name: str, frames: list[Frame], repeats: int) -> list[float]:
     """Seconds per estimate() over ``repeats`` passes through ``frames`` (first frames excluded)."""
     seconds: list[float] = []
     camera = frames[0].camera

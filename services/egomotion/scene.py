@@ -10,13 +10,12 @@ Conventions: camera frame x right, y down, z forward; a pose is camera-to-room (
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from services.egomotion.base import invert_transform, transform_from_increment
-from services.source.frames import Camera
+from services.source.frames import Camera, Frame
 
 TEXELS_PER_M = 160.0
 TEXTURE_SIZE = 1024
@@ -25,19 +24,6 @@ TEXTURE_SIZE = 1024
 def pinhole(width: int, height: int, fov_deg: float = 70.0, baseline: float = 0.12) -> Camera:
     fx = (width / 2.0) / np.tan(np.radians(fov_deg) / 2.0)
     return Camera(fx, fx, (width - 1) / 2.0, (height - 1) / 2.0, baseline, width, height)
-
-
-@dataclass(frozen=True)
-class SceneFrame:
-    """Duck-typed like the source service's Frame."""
-
-    seq: int
-    stamp: float
-    left: np.ndarray
-    right: np.ndarray | None = None
-    camera: Camera | None = None
-    ground_truth: np.ndarray | None = None
-    odometry: tuple[float, float, float] | None = None
 
 
 class BoxRoom:
@@ -85,14 +71,14 @@ class BoxRoom:
             image += np.random.default_rng(seed).normal(0.0, noise, image.shape).astype(np.float32)
         return np.clip(image, 0, 255).astype(np.uint8)
 
-    def frame(self, seq: int, camera: Camera, pose: np.ndarray, stereo: bool = False, **extra) -> SceneFrame:
+    def frame(self, seq: int, camera: Camera, pose: np.ndarray, stereo: bool = False, **extra) -> Frame:
         left = self.render(camera, pose, noise=1.0, seed=seq)
         right = None
         if stereo:
             offset = np.eye(4)
             offset[0, 3] = camera.baseline
             right = self.render(camera, pose @ offset, noise=1.0, seed=10_000 + seq)
-        return SceneFrame(seq, 0.1 * seq, left, right, camera, pose, **extra)
+        return Frame(seq, 0.1 * seq, left, right, camera, pose, **extra)
 
 
 def _texture(rng: np.random.Generator) -> np.ndarray:
@@ -126,7 +112,7 @@ def sequence(
     with_odometry: bool = False,
     seed: int = 0,
     room: BoxRoom | None = None,
-) -> list[SceneFrame]:
+) -> list[Frame]:
     """Frames along a path: frame 0 at the origin, then one frame per planar increment."""
     room = room or BoxRoom(seed)
     pose = np.eye(4)

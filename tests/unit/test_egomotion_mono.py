@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from services.egomotion import make_estimator
-from services.egomotion.scene import SceneFrame, pinhole, sequence
+from services.source.frames import Frame
+from services.egomotion.scene import pinhole, sequence
 
 CAMERA = pinhole(320, 240, fov_deg=70.0)
 GROUND = {"scale_source": "ground", "camera_height_m": 1.2, "ground_margin_px": 20.0, "bucket_size_px": 32}
@@ -47,7 +48,7 @@ def test_pure_translation_scaled_by_odometry_speed(translation_frames):
 
 
 def test_pure_translation_scaled_by_ground_plane(translation_frames):
-    frames = [SceneFrame(f.seq, f.stamp, f.left, None, CAMERA, f.ground_truth) for f in translation_frames]  # no odometry
+    frames = [Frame(f.seq, f.stamp, f.left, None, CAMERA, f.ground_truth) for f in translation_frames]  # no odometry
     increments = run(frames, GROUND)[1:]
     forward = np.array([increment.forward for increment in increments])
     assert all(increment.scaled for increment in increments)
@@ -55,7 +56,7 @@ def test_pure_translation_scaled_by_ground_plane(translation_frames):
 
 
 def test_without_scale_the_direction_is_unit_and_flagged(translation_frames):
-    frames = [SceneFrame(f.seq, f.stamp, f.left, None, CAMERA) for f in translation_frames]
+    frames = [Frame(f.seq, f.stamp, f.left, None, CAMERA) for f in translation_frames]
     increments = run(frames, {"scale_source": "none"})[1:]
     for increment in increments:
         assert not increment.scaled
@@ -65,7 +66,7 @@ def test_without_scale_the_direction_is_unit_and_flagged(translation_frames):
 
 def test_blank_frames_give_low_quality_not_errors(translation_frames):
     blank = np.zeros((240, 320), np.uint8)
-    frames = [translation_frames[0], SceneFrame(1, 0.1, blank, None, CAMERA), SceneFrame(2, 0.2, blank, None, CAMERA), translation_frames[1]]
+    frames = [translation_frames[0], Frame(1, 0.1, blank, None, CAMERA), Frame(2, 0.2, blank, None, CAMERA), translation_frames[1]]
     increments = run(frames, GROUND)
     assert [increment.quality for increment in increments[1:]] == [0.0, 0.0, 0.0]
     assert all(increment.forward == 0.0 and increment.yaw == 0.0 for increment in increments)

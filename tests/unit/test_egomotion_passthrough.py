@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from services.egomotion import EgomotionError, make_estimator
-from services.egomotion.scene import SceneFrame, motion_pose
+from services.source.frames import Frame
+from services.egomotion.scene import motion_pose
 
 STEPS = [(0.2, 0.01, math.radians(4.0)), (0.3, -0.02, math.radians(-2.0)), (0.1, 0.0, 0.0)]
 
@@ -14,10 +15,10 @@ STEPS = [(0.2, 0.01, math.radians(4.0)), (0.3, -0.02, math.radians(-2.0)), (0.1,
 def frames(with_odometry: bool, with_truth: bool):
     image = np.zeros((4, 4), np.uint8)
     pose = np.eye(4)
-    result = [SceneFrame(0, 0.0, image, ground_truth=pose if with_truth else None, odometry=(0.0, 0.0, 0.0) if with_odometry else None)]
+    result = [Frame(0, 0.0, image, ground_truth=pose if with_truth else None, odometry=(0.0, 0.0, 0.0) if with_odometry else None)]
     for k, step in enumerate(STEPS, start=1):
         pose = pose @ motion_pose(*step)
-        result.append(SceneFrame(k, 0.1 * k, image, ground_truth=pose if with_truth else None, odometry=step if with_odometry else None))
+        result.append(Frame(k, 0.1 * k, image, ground_truth=pose if with_truth else None, odometry=step if with_odometry else None))
     return result
 
 
@@ -31,7 +32,7 @@ def test_exact_increments(source, odometry, truth):
 
 
 def test_noise_is_seeded_with_the_given_deviation():
-    many = [SceneFrame(k, 0.1 * k, np.zeros((2, 2), np.uint8), odometry=(0.1, 0.0, 0.0)) for k in range(2001)]
+    many = [Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), odometry=(0.1, 0.0, 0.0)) for k in range(2001)]
     params = {"noise_forward": 0.01, "noise_left": 0.0, "noise_yaw": 0.002, "seed": 5}
     runs = []
     for _ in range(2):

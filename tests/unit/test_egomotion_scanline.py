@@ -8,7 +8,8 @@ import pytest
 
 from services.egomotion import make_estimator
 from services.egomotion.scanline import intensity_profile, match_profiles
-from services.egomotion.scene import SceneFrame, pinhole, sequence
+from services.source.frames import Frame
+from services.egomotion.scene import pinhole, sequence
 
 CAMERA = pinhole(320, 240, fov_deg=70.0)
 
@@ -63,5 +64,5 @@ def test_pure_translation_has_speed_and_little_rotation(frames):
 
 def test_first_and_blank_frames_are_still():
     blank = np.full((240, 320), 90, np.uint8)
-    increments = run([SceneFrame(k, 0.1 * k, blank) for k in range(3)], {})
+    increments = run([Frame(k, 0.1 * k, blank) for k in range(3)], {})
     assert all((i.forward, i.yaw, i.quality) == (0.0, 0.0, 0.0) for i in increments)

@@ -10,8 +10,8 @@ import pytest
 
 from services.egomotion import EgomotionError, make_estimator
 from services.egomotion.base import increment_from_transform
-from services.egomotion.scene import SceneFrame, pinhole, sequence
-from services.source.frames import Camera
+from services.egomotion.scene import pinhole, sequence
+from services.source.frames import Camera, Frame
 
 CAMERA = pinhole(320, 240, fov_deg=70.0, baseline=0.12)
 PARAMS = {"bucket_size_px": 32}
@@ -59,22 +59,22 @@ def test_blank_and_featureless_frames_give_low_quality_not_errors(translation_fr
     blank = np.full((240, 320), 128, np.uint8)
     frames = [
         translation_frames[0],
-        SceneFrame(1, 0.1, blank, blank, CAMERA),
-        SceneFrame(2, 0.2, blank, blank, CAMERA),
+        Frame(1, 0.1, blank, blank, CAMERA),
+        Frame(2, 0.2, blank, blank, CAMERA),
         translation_frames[1],
     ]
     increments = run(frames)
     assert [increment.quality for increment in increments[1:3]] == [0.0, 0.0]
     assert all(increment.forward == 0.0 for increment in increments[1:3])
     # Holding the last motion on failure (LIBVISO2's pipeline keeps the last one).
-    held = run([translation_frames[0], translation_frames[1], SceneFrame(2, 0.2, blank, blank, CAMERA)], {**PARAMS, "failure_motion": "hold"})
+    held = run([translation_frames[0], translation_frames[1], Frame(2, 0.2, blank, blank, CAMERA)], {**PARAMS, "failure_motion": "hold"})
     assert held[2].quality == 0.0 and held[2].forward == pytest.approx(held[1].forward)
 
 
 def test_monocular_frame_is_a_configuration_error(translation_frames):
     frame = translation_frames[0]
     with pytest.raises(EgomotionError, match="no right image"):
-        run([SceneFrame(0, 0.0, frame.left, None, CAMERA)])
+        run([Frame(0, 0.0, frame.left, None, CAMERA)])
 
 
 def test_nubot_first_frames_match_libviso2(shared_data):
@@ -85,7 +85,7 @@ def test_nubot_first_frames_match_libviso2(shared_data):
     camera = Camera(493.86945, 493.86945, 320.33392, 244.18816, 0.11996, 640, 480)
     span = range(40, 53)  # driving and turning (the first frames are almost still)
     frames = [
-        SceneFrame(
+        Frame(
             k, 0.1 * k,
             cv2.imread(str(folder / "left" / f"{k:06d}.png"), cv2.IMREAD_GRAYSCALE),
             cv2.imread(str(folder / "right" / f"{k:06d}.png"), cv2.IMREAD_GRAYSCALE),
