@@ -2,7 +2,8 @@
 against a stored, non-recent template is a *possible* loop closure; a closure is *confirmed*
 when more than six possible closures occur within ten consecutive frames and they are
 consistent — the matched templates advance together with the current frames, in the same
-order, within a tolerance (a revisit replays the earlier stretch of the route)."""
+order, within a tolerance (a revisit replays the earlier stretch of the route). The votes counted
+are the longest such run ending at the newest vote."""
 
 from __future__ import annotations
 
@@ -55,16 +56,17 @@ class ConsistencyRule:
         return Closure(frame, matched_frame, template_id, votes)
 
     def consistent_votes(self) -> int:
-        """Votes that agree with the newest one: same frame offset within the tolerance (the
-        matched frames advance with the current ones) and matched frames in the same order."""
+        """The longest run of votes that agree with the newest one and ends at it: frame offsets
+        within the tolerance of the newest's (the matched frames advance with the current ones),
+        matched frames in order (never going backwards). The longest such run, not the first
+        greedy one: an outlier early in the window (its offset inside the tolerance, its matched
+        frame ahead of the others) must not hide the run that follows it."""
         frame, matched, _ = self.possible[-1]
         offset = frame - matched
-        votes, last_matched = 0, None
-        for vote_frame, vote_matched, _ in self.possible:
-            if abs((vote_frame - vote_matched) - offset) > self.params.tolerance:
-                continue
-            if last_matched is not None and vote_matched < last_matched:
-                continue   # out of order: the earlier stretch replayed backwards is no revisit
-            votes += 1
-            last_matched = vote_matched
-        return votes
+        agreeing = [vote_matched for vote_frame, vote_matched, _ in self.possible
+                    if abs((vote_frame - vote_matched) - offset) <= self.params.tolerance]
+        # Longest non-decreasing subsequence ending at each vote (the window holds ten at most).
+        longest: list[int] = []
+        for i, current in enumerate(agreeing):
+            longest.append(1 + max((longest[j] for j in range(i) if agreeing[j] <= current), default=0))
+        return longest[-1]

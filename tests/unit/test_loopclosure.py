@@ -64,6 +64,26 @@ def test_matched_frames_going_backwards_are_not_a_closure():
     assert any(closure is not None for _, closure in feed(ConsistencyRule(params), forwards))
 
 
+def test_an_early_outlier_inside_the_tolerance_does_not_hide_the_run_after_it():
+    # Matched frames [14, 10, 11, 12, ..., 18] at frames 100..109: the first vote's offset (86) is
+    # within the tolerance of the newest's (91) but its matched frame is ahead of the next eight.
+    # A greedy count takes 14 first and keeps only 14..18 (six votes); the longest run is 10..18.
+    matched = [14] + list(range(10, 19))
+    results = feed(ConsistencyRule(ConsistencyParams()), [(100 + k, 3 + k, False, m) for k, m in enumerate(matched)])
+    confirmed = [closure for _, closure in results if closure is not None]
+    assert confirmed and confirmed[-1].votes == 9 and confirmed[-1].matched_frame == 18
+    assert confirmed[0].frame == 107 and confirmed[0].votes == 7      # 10..16: the seventh vote in order
+
+
+def test_the_newest_vote_must_end_the_run():
+    # Eight votes in order (offset 90), then a newest one whose matched frame goes back to 14
+    # (offset 94, inside the tolerance): the run that ends at it is 10..14, 14: six votes, no
+    # closure against frame 14 (a greedy count would confirm one with all eight).
+    matched = list(range(10, 18)) + [14]
+    results = feed(ConsistencyRule(ConsistencyParams()), [(100 + k, 3 + k, False, m) for k, m in enumerate(matched)])
+    assert results[-1][1] is None and results[-2][1] is not None
+
+
 def test_recent_templates_are_not_closures():
     rule = ConsistencyRule(ConsistencyParams(recent_frames=30))
     # The robot stands still for 20 frames matching the template it stored at frame 40.
