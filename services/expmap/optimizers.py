@@ -1,0 +1,195 @@
+"""The experience map's optimisers: what places the experiences, given its links (graph.py).
+
+- `PoseGraph` (`optimizer = "gtsam"`): the map as a pose graph solved incrementally by gtsam's
+  iSAM2 (Kaess et al., IJRR 2012), QR factorisation (stable on long chains where the default
+  Cholesky failed in a trial). Odometric links are Gaussian factors whose standard deviations
+  grow with the distance they span. A closure is first tested against the graph: its
+  innovation — the difference between the relative pose it measures and the one the map
+  predicts, weighed by both uncertainties (the closure's covariance plus the joint marginal
+  covariance of its two experiences) — must be within `closure_gate` standard deviations
+  (a χ² test, 3 degrees of freedom). A closure the odometry contradicts is refused and never
+  enters the graph. An accepted one is added under a robust kernel (Cauchy by default), so
+  that a wrong closure that passed the test still pulls little, and the solver iterates
+  `closure_iterations` more times.
+  The graph is solved only on frames with a closure: between closures the map is a chain, and
+  a new experience's estimate is its predecessor's composed with the odometry, exactly what the
+  solver would give, so such frames cost nothing that grows with the map. (iSAM2 updates cost
+  time proportional to the map in gtsam 4.3: its Bayes-tree destructor visits every clique
+  below the part it re-eliminates — measured in docs/mapping.md.)
+- `Relaxation` (`optimizer = "ratslam"`): RatSLAM's graph relaxation. Every link pulls both of
+  its ends toward agreement with its transform by `correction` (0.5, as in RatSLAM) of the
+  disagreement; headings the same way. All links act at once and a node's pulls are averaged
+  over its links, so the result does not depend on link order and the vectorised update is
+  stable. Every closure is accepted (the paper's model); a pass costs one sweep over all links.
+
+Both write the map's published poses (ExperienceMap._poses) and report which experiences moved.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.expmap.graph import MOVED, ExperienceMap, Link, adjoint, inverse, wrap
+
+# Published poses refreshed per solve besides those the solver re-eliminated: every solved
+# experience is refreshed at least once every len(map) / REFRESH_PER_SOLVE solves.
+REFRESH_PER_SOLVE = 256
+PRIOR_SIGMA = 1e-6          # the first experience anchors the map frame to the odometry frame
+RELINEARIZE_THRESHOLD = 0.01
+
+
+class PoseGraph:
+    def __init__(self, experience_map: ExperienceMap):
+        import gtsam   # imported here: the ratslam optimiser and the map's readers need no gtsam
+
+        self.gtsam = gtsam
+        self.map = experience_map
+        params = gtsam.ISAM2Params()
+        params.setFactorization("QR")
+        params.relinearizeSkip = 1
+        params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
+        params.enablePartialRelinearizationCheck = True
+        self.isam = gtsam.ISAM2(params)
+        self._factors = gtsam.NonlinearFactorGraph()
+        self._values = gtsam.Values()
+        self._solved = 0                    # experiences 0.._solved-1 are in the solver
+        self._refresh: set[int] = set()     # experiences whose estimate the last updates touched
+        self._cursor = 0                    # round-robin refresh position
+        p = experience_map.params
+        kernels = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "geman_mcclure": gtsam.noiseModel.mEstimator.GemanMcClure,
+                   "dcs": gtsam.noiseModel.mEstimator.DCS, "huber": gtsam.noiseModel.mEstimator.Huber}
+        self._kernel = kernels[p.robust_kernel].Create(p.kernel_width) if p.robust_kernel in kernels else None
+
+    # --- building ---------------------------------------------------------------------------------
+    def add_experience(self, index: int, pose) -> None:
+        self._values.insert(index, self.gtsam.Pose2(*pose))
+        if index == 0:
+            self._factors.add(self.gtsam.PriorFactorPose2(0, self.gtsam.Pose2(*pose),
+                                                          self.gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+
+    def add_link(self, link: Link, covariance: np.ndarray) -> None:
+        self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
+
+    def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, float]:
+        """Test a closure against the graph, add it when it passes; (accepted, innovation in std devs)."""
+        self._update()   # the experiences and links so far are in the solver
+        innovation = self._innovation(link, covariance)
+        accepted = innovation <= self.map.params.closure_gate
+        if accepted:
+            noise = self.gtsam.noiseModel.Gaussian.Covariance(covariance)
+            if self._kernel is not None:
+                noise = self.gtsam.noiseModel.Robust.Create(self._kernel, noise)
+            self._factors.add(self._factor(link, noise))
+            self._update()
+            for _ in range(self.map.params.closure_iterations):
+                self._update()
+        return accepted, innovation
+
+    def _factor(self, link: Link, noise):
+        return self.gtsam.BetweenFactorPose2(link.source, link.target, self.gtsam.Pose2(*link.transform), noise)
+
+    def _update(self) -> None:
+        result = self.isam.update(self._factors, self._values)
+        self._solved += self._values.size()
+        self._factors, self._values = self.gtsam.NonlinearFactorGraph(), self.gtsam.Values()
+        self._refresh.update(result.getMarkedKeys())
+
+    def _innovation(self, link: Link, covariance: np.ndarray) -> float:
+        """How far the link's measurement is from the map's prediction, in standard deviations of
+        both: the Mahalanobis norm of Log(measured⁻¹ ∘ predicted) under the closure's covariance
+        plus the predicted relative pose's, from the joint marginal of its two experiences."""
+        source, target = (self.isam.calculateEstimatePose2(key) for key in (link.source, link.target))
+        predicted = source.between(target)
+        error = self.gtsam.Pose2.Logmap(self.gtsam.Pose2(*link.transform).between(predicted))
+        joint = self.isam.jointMarginalCovariance(self.gtsam.KeyVector([link.source, link.target]))
+        blocks = [[joint.at(a, b) for b in (link.source, link.target)] for a in (link.source, link.target)]
+        # predicted ∘ Exp(ε) = (source ∘ Exp(δs))⁻¹ ∘ target ∘ Exp(δt): ε = δt − Ad(predicted⁻¹) δs
+        jacobian = np.hstack([-adjoint(inverse((predicted.x(), predicted.y(), predicted.theta()))), np.eye(3)])
+        relative = jacobian @ np.block(blocks) @ jacobian.T
+        return float(np.sqrt(error @ np.linalg.solve(covariance + relative, error)))
+
+    # --- results ----------------------------------------------------------------------------------
+    def solve(self, closure_frame: bool) -> list[int]:
+        """Refresh the published poses after a closure frame's solve: those the solver touched
+        plus the next REFRESH_PER_SOLVE; the experiences that moved. Other frames solve nothing."""
+        if not closure_frame or not self._solved:
+            return []
+        count = self._solved
+        window = range(self._cursor, self._cursor + min(REFRESH_PER_SOLVE, count))
+        self._cursor = (self._cursor + REFRESH_PER_SOLVE) % count
+        keys = sorted(self._refresh.union(i % count for i in window))
+        self._refresh.clear()
+        poses, moved = self.map._poses, []
+        for key in keys:
+            estimate = self.isam.calculateEstimatePose2(key)
+            pose = (estimate.x(), estimate.y(), estimate.theta())
+            if (np.abs(poses[key] - pose) > MOVED).any():
+                moved.append(key)
+            poses[key] = pose
+        return moved
+
+    def estimate(self) -> np.ndarray:
+        if self._factors.size() or self._values.size():
+            self._update()
+        if len(self.map) == 0:
+            return np.zeros((0, 3))
+        return self.gtsam.utilities.extractPose2(self.isam.calculateEstimate())
+
+
+class Relaxation:
+    def __init__(self, experience_map: ExperienceMap):
+        self.map = experience_map
+        self._source = np.zeros(64, dtype=np.int64)
+        self._target = np.zeros(64, dtype=np.int64)
+        self._offset = np.zeros((64, 3))
+        self._count = 0
+        self._degree = np.zeros(64)
+
+    def add_experience(self, index: int, pose) -> None:
+        if index >= len(self._degree):
+            self._degree = np.concatenate([self._degree, np.zeros_like(self._degree)])
+
+    def add_link(self, link: Link, covariance: np.ndarray | None = None) -> None:
+        if self._count == len(self._source):   # grow geometrically
+            self._source, self._target = (np.concatenate([a, np.zeros_like(a)]) for a in (self._source, self._target))
+            self._offset = np.concatenate([self._offset, np.zeros_like(self._offset)])
+        self._source[self._count], self._target[self._count] = link.source, link.target
+        self._offset[self._count] = link.transform
+        self._count += 1
+        self._degree[link.source] += 1
+        self._degree[link.target] += 1
+
+    def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, None]:
+        self.add_link(link)
+        return True, None
+
+    def solve(self, closure_frame: bool) -> list[int]:
+        p = self.map.params
+        before = self.map.poses.copy()
+        self.relax(p.relax_passes if closure_frame else p.relax_every_frame)
+        return np.flatnonzero((np.abs(self.map.poses - before) > MOVED).any(axis=1)).tolist()
+
+    def relax(self, passes: int) -> None:
+        """`passes` relaxation passes over every link."""
+        if not self._count or passes <= 0:
+            return
+        poses = self.map.poses   # a view: relaxed in place
+        source, target, offset = self._source[:self._count], self._target[:self._count], self._offset[:self._count]
+        degree = np.maximum(self._degree[:len(poses)], 1.0)[:, None]
+        correction = self.map.params.correction
+        for _ in range(passes):
+            start = poses[source]
+            c, s = np.cos(start[:, 2]), np.sin(start[:, 2])
+            predicted = np.column_stack([start[:, 0] + c * offset[:, 0] - s * offset[:, 1],
+                                         start[:, 1] + s * offset[:, 0] + c * offset[:, 1],
+                                         start[:, 2] + offset[:, 2]])
+            error = predicted - poses[target]
+            error[:, 2] = wrap(error[:, 2])
+            pull = np.zeros_like(poses)
+            np.add.at(pull, target, error * correction)
+            np.add.at(pull, source, -error * correction)
+            poses += pull / degree
+            poses[:, 2] = wrap(poses[:, 2])
+
+    def estimate(self) -> np.ndarray:
+        return self.map.poses.copy()
