@@ -8,6 +8,7 @@ from pathlib import Path
 
 from services.common.config import load_config
 from services.common.runtime import DEFAULT_ROUTER
+from services.expmap.service import add_map_arguments
 
 
 def add_run_arguments(parser, *, source_required: bool) -> None:
@@ -29,6 +30,7 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--robot", help="robot name (default robot0)")
     parser.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
                         help="skip loop closure and the experience map")
+    add_map_arguments(parser)
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
 
@@ -75,7 +77,8 @@ def execute(args, **defaults) -> int:
 
     flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
              "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view}
+             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view,
+             "closure": args.closure, "map_optimizer": args.map_optimizer}
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
     progress = Progress()
     try:

@@ -22,7 +22,7 @@ from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.graph import ExperienceMap, MapParams
-from services.expmap.store import FORMAT, Step
+from services.expmap.store import FORMAT, VERSION, Step
 
 log = logging.getLogger(__name__)
 
@@ -67,12 +67,12 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
     if params is not None and params != logged:
         raise MapExportError(f"{path}: the map was built with parameters {asdict(logged)}, not {asdict(params)}; "
                              "export it with the same preset or config (or with neither: the log's own)")
+    if records[0].get("version") != VERSION:
+        raise MapExportError(f"{path}: a version {records[0].get('version')} map log; this gridslam reads version {VERSION}")
     steps = []
     for number, record in enumerate(records[1:], start=2):
         try:
-            closure = record["closure"]
-            steps.append(Step(int(record["frame"]), float(record["stamp"]), tuple(float(v) for v in record["odometry"]),
-                              int(record["template"]), (int(closure[0]), int(closure[1])) if closure else None))
+            steps.append(Step.from_record(record))
         except (KeyError, TypeError, ValueError, IndexError):
             raise MapExportError(f"{path}: line {number}: not a map record") from None
     return MapLog(path, logged, steps, torn)

@@ -158,6 +158,9 @@ class ClosureInput:
     left: float = 0.0
     yaw: float = 0.0
     covariance: tuple[float, ...] = ()
+    votes: int = 0                 # evidence only (loop_closures.csv): the consistency rule's votes,
+    inliers: int = 0               # the feature matches behind the measurement,
+    geometry_error: str = ""       # why there is no measurement
 
     @property
     def measured(self) -> bool:

@@ -73,6 +73,11 @@ class RunConfig(BaseModel):
     robot: str = Field("robot0", description="Robot name.")
     window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
+    closure: Literal["metric", "ratslam"] | None = Field(
+        None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
+                          "default: the services' (metric).")
+    map_optimizer: Literal["gtsam", "ratslam"] | None = Field(
+        None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
     view: str | None = Field(None, description="Also run the viewer, serving HTTP on this host:port.")
     stall_timeout: float = Field(60.0, gt=0, description="Fail when no frame completes for this many seconds.")
 
@@ -241,9 +246,12 @@ def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
     if name == "viewer":
         args += ["--http", config.view]
     if name == "loopclosure":
-        args += ["--out", str(folder), "--store", str(folder / TEMPLATE_LOG)]
+        args += ["--store", str(folder / TEMPLATE_LOG)]
     if name == "expmap":
-        args += ["--store", str(folder / MAP_LOG)]
+        args += ["--store", str(folder / MAP_LOG), "--out", str(folder)]
+        args += ["--map-optimizer", config.map_optimizer] if config.map_optimizer else []
+    if name in ("loopclosure", "expmap") and config.closure:
+        args += ["--closure", config.closure]
     return args
 
 
