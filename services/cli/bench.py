@@ -14,6 +14,7 @@ BENCHMARKS: dict[str, str] = {
     "pipeline": "services.pipeline.bench",
     "load": "services.pipeline.load",
     "loopclosure": "services.loopclosure.bench",
+    "geometry": "services.loopclosure.geometry_bench",
 }
 
 

@@ -17,12 +17,13 @@ keyframe's (Hamming distance, Lowe's ratio test, one keyframe feature per curren
   cv2.projectPoints, W: the matches' inverse error covariances, s²: the weighted residual
   variance χ²/(2n − 6), the a-posteriori variance factor), propagated to the planar
   (forward, left, yaw) by a numerical Jacobian, plus floors.
-- **mono** (no 3D points): the essential matrix (cv2.findEssentialMat with MAGSAC++,
-  cv2.recoverPose) gives the rotation and the direction of the translation, refined by
-  Gauss–Newton on the Sampson errors of the inliers; the covariance of the five parameters is
-  s²(JᵀJ)⁻¹ over the Sampson residuals, propagated the same way. The translation's length is
-  not observable: (forward, left) is the unit direction of the planar translation, ``scaled``
-  is False, and the map takes the length from the odometry.
+- **mono** (no 3D points): the essential matrix of a horizontal translation (a ground robot
+  does not change height between visits) and a free rotation, fitted to the matches' Sampson
+  errors by profiling the direction of the translation over 180° (see "Monocular closures"
+  below for why the general five-parameter fit is not used); the covariance of (direction,
+  yaw) is the likelihood-weighted spread of that profile. The translation's length is not
+  observable: (forward, left) is the unit direction of the translation, ``scaled`` is False,
+  and the map takes the length from the odometry.
 
 Conventions (services/egomotion/base.py): camera x right, y down, z forward; body x forward,
 y left, yaw counter-clockwise. ``RelativePose`` is the current frame's body pose in the
@@ -76,10 +77,10 @@ class GeometryParams:
     stereo_forward_backward_px: float = 0.0   # 0: no backward check (the row check rejects most bad matches)
     max_row_error_px: float = 1.0
     min_disparity_px: float = 0.5
-    # Pose: RANSAC inlier threshold (stereo reprojection, mono Sampson), minimal support.
+    # Pose: stereo RANSAC (reprojection error), mono inlier threshold (Sampson error), support.
     ransac_px: float = 3.0
     ransac_iterations: int = 500
-    mono_ransac_px: float = 1.5
+    mono_threshold_px: float = 1.5
     min_inliers: int = 20
     min_inlier_ratio: float = 0.3    # inliers / matches
     min_parallax_px: float = 1.0     # mono: below it the direction of the translation is unknown
@@ -106,7 +107,7 @@ class GeometryParams:
             ("stereo_candidates", self.stereo_candidates >= 1), ("stereo_forward_backward_px", self.stereo_forward_backward_px >= 0),
             ("max_row_error_px", self.max_row_error_px > 0),
             ("min_disparity_px", self.min_disparity_px > 0), ("ransac_px", self.ransac_px > 0),
-            ("ransac_iterations", self.ransac_iterations >= 1), ("mono_ransac_px", self.mono_ransac_px > 0),
+            ("ransac_iterations", self.ransac_iterations >= 1), ("mono_threshold_px", self.mono_threshold_px > 0),
             ("min_inliers", self.min_inliers >= 6), ("min_inlier_ratio", 0 <= self.min_inlier_ratio <= 1),
             ("min_parallax_px", self.min_parallax_px >= 0), ("max_translation_m", self.max_translation_m > 0),
             ("max_yaw_deg", 0 < self.max_yaw_deg <= 180), ("max_tilt_deg", 0 < self.max_tilt_deg <= 180),
@@ -406,37 +407,27 @@ class ClosureGeometry:
         p = self.params
         rvec, tvec = rvec.reshape(3, 1).astype(np.float64), tvec.reshape(3, 1).astype(np.float64)
         n = len(points)
-        for step in range(3):
+        for step in range(3):   # two steps, then the Jacobian and residuals at the result
             projected, jacobian = cv2.projectPoints(points, rvec, tvec, K, None)
-            residual = (projected.reshape(n, 2) - pixels)
+            residual = projected.reshape(n, 2) - pixels
             J = jacobian[:, :6].reshape(n, 2, 6)
             weight = _match_weights(points, rvec, tvec, K, fb, p.pixel_sigma, p.disparity_sigma)
             JtW = np.einsum("nki,nkl->nil", J, weight)        # (n, 6, 2)
             information = np.einsum("nil,nlj->ij", JtW, J)
-            gradient = np.einsum("nil,nl->i", JtW, residual)
-            try:
-                delta = np.linalg.solve(information, -gradient)
-            except np.linalg.LinAlgError:
+            if not np.all(np.isfinite(information)) or np.linalg.cond(information) > 1e12:
                 return rvec, tvec, None
-            if step == 2:
-                break
-            rvec, tvec = rvec + delta[:3, None], tvec + delta[3:, None]
+            if step < 2:
+                delta = np.linalg.solve(information, -np.einsum("nil,nl->i", JtW, residual))
+                rvec, tvec = rvec + delta[:3, None], tvec + delta[3:, None]
         chi2 = float(np.einsum("nk,nkl,nl->", residual, weight, residual))
-        scale = chi2 / max(2 * n - 6, 1)
-        try:
-            covariance = scale * np.linalg.inv(information)
-        except np.linalg.LinAlgError:
-            return rvec, tvec, None
-        if not np.all(np.isfinite(covariance)):
-            return rvec, tvec, None
-        return rvec, tvec, covariance
+        return rvec, tvec, chi2 / max(2 * n - 6, 1) * np.linalg.inv(information)
 
     def _mono_pose(self, first: np.ndarray, second: np.ndarray, K: np.ndarray) -> RelativePose:
         p = self.params
         K_inv = np.linalg.inv(K)
         x1 = np.column_stack((first, np.ones(len(first)))) @ K_inv.T
         x2 = np.column_stack((second, np.ones(len(second)))) @ K_inv.T
-        fit = _mono_fit(x1, x2, K, p.mono_ransac_px)
+        fit = _mono_fit(x1, x2, K, p.mono_threshold_px)
         if fit is None:
             return _failure("mono", "degenerate geometry")
         rotation, direction, covariance2, inlier = fit

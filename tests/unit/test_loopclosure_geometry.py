@@ -12,51 +12,16 @@ import pytest
 
 from services.common.errors import ConfigError
 from services.loopclosure.geometry import ClosureGeometry, GeometryParams, Keyframe
-from services.source.frames import Camera
+from services.loopclosure.geometry_bench import NUBOT_CAMERA, pose_error, revisits, unrelated
 from services.source.synthetic import SyntheticWorld, WorldConfig
 
 GEOMETRY = ClosureGeometry()
-NUBOT_CAMERA = Camera(493.86945, 493.86945, 320.33392, 244.18816, 0.11996, 640, 480)
 CHI2_3_BOUND = 25.0   # χ² with 3 degrees of freedom exceeds this with probability 1.4e-5
 
 
 @pytest.fixture(scope="module")
 def worlds():
     return [SyntheticWorld(WorldConfig(seed=seed)) for seed in (0, 1)]
-
-
-def relative(p0, p1) -> np.ndarray:
-    """Planar pose p1 in the body frame of p0: (forward, left, yaw)."""
-    (x0, y0, h0), (x1, y1, h1) = p0, p1
-    c, s = math.cos(h0), math.sin(h0)
-    return np.array([c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0), math.remainder(h1 - h0, 2 * math.pi)])
-
-
-def revisits(world, count: int, seed: int):
-    """(keyframe frame, current image, true relative pose): a lap-1 frame and either the lap-2
-    frame a few frames (≤ 0.8 m) away or a view rendered off the route (±0.3 m sideways,
-    ±0.5 m along, ±8°), alternately."""
-    rng = np.random.default_rng(seed)
-    lap = world.frames_per_lap
-    pairs = []
-    for index, a in enumerate(rng.choice(np.arange(10, lap - 10), count, replace=False)):
-        a = int(a)
-        if index % 2 == 0:
-            b = a + lap + int(rng.integers(-8, 9))
-            pairs.append((world[a], world[b].left, relative(world.planar_pose(a), world.planar_pose(b))))
-        else:
-            x, y, h = world.planar_pose(a)
-            forward, left, turn = rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), math.radians(rng.uniform(-8, 8))
-            pose = (x + math.cos(h) * forward - math.sin(h) * left, y + math.sin(h) * forward + math.cos(h) * left, h + turn)
-            image, _ = world.render(*pose, exposure=1.05, noise=np.random.default_rng([seed, a]))
-            pairs.append((world[a], image, relative(world.planar_pose(a), pose)))
-    return pairs
-
-
-def error_of(result, truth) -> np.ndarray:
-    error = np.array([result.forward, result.left, result.yaw]) - truth
-    error[2] = math.remainder(error[2], 2 * math.pi)
-    return error
 
 
 # --- stereo on the synthetic world ------------------------------------------------------------
@@ -75,7 +40,7 @@ def test_stereo_revisits_are_measured_to_centimetres(stereo_results):
     ok = [(result, truth) for result, truth in stereo_results if result.ok]
     assert len(ok) >= 0.85 * len(stereo_results)
     assert all(result.method == "stereo" and result.scaled and result.reason == "" for result, _ in ok)
-    errors = np.array([error_of(result, truth) for result, truth in ok])
+    errors = np.array([pose_error(result, truth) for result, truth in ok])
     rms = np.sqrt((errors ** 2).mean(axis=0))
     assert rms[0] < 0.03 and rms[1] < 0.03 and math.degrees(rms[2]) < 0.5
     assert np.abs(errors[:, :2]).max() < 0.10
@@ -85,7 +50,7 @@ def test_stereo_errors_agree_with_the_covariance(stereo_results):
     nees = []
     for result, truth in stereo_results:
         if result.ok:
-            error = error_of(result, truth)
+            error = pose_error(result, truth)
             covariance = result.covariance
             assert covariance.shape == (3, 3) and np.allclose(covariance, covariance.T)
             assert np.all(np.linalg.eigvalsh(covariance) > 0)
@@ -102,16 +67,10 @@ def test_failures_name_their_reason(stereo_results):
 
 
 def test_unrelated_places_are_refused(worlds):
-    world = worlds[0]
-    lap = world.frames_per_lap
-    rng = np.random.default_rng(7)
-    for _ in range(8):
-        a = int(rng.integers(lap))
-        b = (a + int(rng.integers(40, lap - 40))) % lap + lap     # ≥ 4 m along the route, on lap 2
-        frame, other = world[a], world[b]
+    for frame, other in unrelated(worlds[0], 8, 0):     # ≥ 4 m apart along the route
         stereo = GEOMETRY.relative_pose(GEOMETRY.keyframe(frame.left, frame.right, frame.camera), other.left)
         mono = GEOMETRY.relative_pose(GEOMETRY.keyframe(frame.left, None, frame.camera), other.left)
-        assert not stereo.ok and not mono.ok, (a, b, stereo, mono)
+        assert not stereo.ok and not mono.ok, (frame.seq, other.seq, stereo, mono)
 
 
 def test_implausible_motion_is_refused(worlds):
