@@ -173,11 +173,11 @@ class Keyframe:
         uint16 multiples of 2^-k px (k as fine as the image size allows: 1/64 px at 640×480),
         the descriptors, and disparities as uint16 multiples of 1/64 px (0: no depth). The
         rounding (≤ 1/128 px) is far below the features' own noise (tenths of a pixel)."""
-        count, width = self.descriptors.shape if len(self.descriptors) else (0, 32)
+        count, descriptor_bytes = self.descriptors.shape if len(self.descriptors) else (0, 32)
         image_w, image_h = self.image_size
         bits = _keypoint_bits(image_w, image_h)
         flags = (_HAS_CAMERA if self.camera is not None else 0) | (_HAS_DISPARITY if self.disparity is not None else 0)
-        parts = [_HEADER.pack(_VERSION, flags, count, image_w, image_h, bits, width)]
+        parts = [_HEADER.pack(_VERSION, flags, count, image_w, image_h, bits, descriptor_bytes)]
         if self.camera is not None:
             c = self.camera
             parts.append(_CAMERA.pack(c.fx, c.fy, c.cx, c.cy, c.baseline))
@@ -193,12 +193,14 @@ class Keyframe:
         """The keyframe `to_bytes` wrote; KeyframeError for anything else."""
         if len(data) < _HEADER.size:
             raise KeyframeError(f"keyframe: {len(data)} bytes, shorter than its header")
-        version, flags, count, image_w, image_h, bits, width = _HEADER.unpack_from(data)
+        version, flags, count, image_w, image_h, bits, descriptor_bytes = _HEADER.unpack_from(data)
         if version != _VERSION:
             raise KeyframeError(f"keyframe: unknown version {version} (this build reads version {_VERSION})")
+        if bits > 15:
+            raise KeyframeError(f"keyframe: keypoint precision 2^-{bits} px is out of range")
         camera_size = _CAMERA.size if flags & _HAS_CAMERA else 0
-        expected = _HEADER.size + camera_size + count * (4 + width + (2 if flags & _HAS_DISPARITY else 0))
-        if len(data) != expected or bits > 15:
+        expected = _HEADER.size + camera_size + count * (4 + descriptor_bytes + (2 if flags & _HAS_DISPARITY else 0))
+        if len(data) != expected:
             raise KeyframeError(f"keyframe: {len(data)} bytes where its header announces {expected}")
         offset = _HEADER.size
         camera = None
@@ -208,8 +210,8 @@ class Keyframe:
             offset += camera_size
         keypoints = np.frombuffer(data, "<u2", 2 * count, offset).reshape(count, 2).astype(np.float32) / np.float32(1 << bits)
         offset += 4 * count
-        descriptors = np.frombuffer(data, np.uint8, count * width, offset).reshape(count, width).copy()
-        offset += count * width
+        descriptors = np.frombuffer(data, np.uint8, count * descriptor_bytes, offset).reshape(count, descriptor_bytes).copy()
+        offset += count * descriptor_bytes
         disparity = None
         if flags & _HAS_DISPARITY:
             steps = np.frombuffer(data, "<u2", count, offset).astype(np.float32)

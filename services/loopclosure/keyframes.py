@@ -7,8 +7,8 @@ keyframe: payload length (uint32), CRC32 of the template id and payload (uint32)
 killed process leaves every record it wrote; appending a template id again supersedes the
 earlier record.
 
-Memory holds only the index (two arrays over template ids: offset and length, 12 bytes per
-template) and a small LRU cache of decoded keyframes. The file is bounded: a keyframe that
+Memory holds only the index (two arrays over the template ids, which are dense: 0, 1, 2, …;
+offset and length, 12 bytes per template) and a small LRU cache of decoded keyframes. The file is bounded: a keyframe that
 would take it beyond ``max_bytes`` is not stored (counted in ``dropped``, logged once), and
 its closures then fall back to what the map does without geometry.
 
@@ -108,7 +108,9 @@ class KeyframeStore:
             self.dropped += 1
             return False
         try:
-            self._file.write(record)
+            written = self._file.write(record)
+            while written < len(record):   # an unbuffered write may stop short (e.g. a signal)
+                written += self._file.write(record[written:])
         except OSError as error:
             raise JournalError(f"{self.path}: cannot append ({error.strerror})") from None
         self._index(template_id, self._size + _RECORD.size, len(payload))
