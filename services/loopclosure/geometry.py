@@ -550,7 +550,7 @@ def _planar_jacobian(function, x: np.ndarray, step: float = 1e-6) -> np.ndarray:
 # essential matrix is poorly conditioned at closures: the views are close and indoor scenes have
 # little depth range, so yaw and the direction of the translation trade off along a long, curved
 # valley of near-equal costs with shallow local minima, where the curvature at the minimum
-# understates the spread many times over (measured: errors of 10–30 standard deviations). A
+# understates the spread many times over (docs/closure_geometry.md). A
 # ground robot does not change height between its visits, so the translation is taken
 # horizontal in the keyframe's camera frame, at an angle θ = atan2(left, forward), and the cost
 # (truncated squared Sampson errors) is profiled over θ: on a grid over 180° (θ and θ + π fit

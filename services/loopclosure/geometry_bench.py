@@ -82,17 +82,15 @@ def direction_error(result, truth) -> float:
 
 
 def accuracy(seeds: list[int], count: int, geometry: ClosureGeometry) -> dict:
-    stereo, mono, refused, tried = [], [], 0, 0
-    stereo_tried = mono_tried = 0
+    stereo, mono, pairs, refused, tried = [], [], 0, 0, 0
     for seed in seeds:
         world = SyntheticWorld(WorldConfig(seed=seed))
         for frame, image, truth in revisits(world, count, seed):
-            stereo_tried += 1
+            pairs += 1
             result = geometry.relative_pose(geometry.keyframe(frame.left, frame.right, frame.camera), image)
             if result.ok:
                 error = pose_error(result, truth)
                 stereo.append((error, float(error @ np.linalg.solve(result.covariance, error))))
-            mono_tried += 1
             result = geometry.relative_pose(geometry.keyframe(frame.left, None, frame.camera), image)
             if result.ok:
                 yaw_error = math.remainder(result.yaw - truth[2], 2 * math.pi)
@@ -108,13 +106,13 @@ def accuracy(seeds: list[int], count: int, geometry: ClosureGeometry) -> dict:
     yaw, direction, z = (np.array(column) for column in zip(*mono))
     direction = direction[np.isfinite(direction)]
     return {
-        "stereo_ok": f"{len(stereo)}/{stereo_tried}",
+        "stereo_ok": f"{len(stereo)}/{pairs}",
         "stereo_rms_cm": np.sqrt((errors[:, :2] ** 2).mean(axis=0)) * 100,
         "stereo_max_cm": np.abs(errors[:, :2]).max(axis=0) * 100,
         "stereo_yaw_rms_deg": math.degrees(math.sqrt((errors[:, 2] ** 2).mean())),
         "stereo_yaw_max_deg": math.degrees(np.abs(errors[:, 2]).max()),
         "nees": (nees.mean(), np.median(nees), np.percentile(nees, 95), nees.max()),
-        "mono_ok": f"{len(mono)}/{mono_tried}",
+        "mono_ok": f"{len(mono)}/{pairs}",
         "mono_yaw_deg": (np.median(yaw), np.percentile(yaw, 90), yaw.max()),
         "mono_direction_deg": (np.median(direction), np.percentile(direction, 90), direction.max(), len(direction)),
         "mono_yaw_z2": (np.median(z), z.mean()),

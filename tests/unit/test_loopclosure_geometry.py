@@ -12,7 +12,7 @@ import pytest
 
 from services.common.errors import ConfigError
 from services.loopclosure.geometry import ClosureGeometry, GeometryParams, Keyframe
-from services.loopclosure.geometry_bench import NUBOT_CAMERA, pose_error, revisits, unrelated
+from services.loopclosure.geometry_bench import NUBOT_CAMERA, direction_error, pose_error, revisits, unrelated
 from services.source.synthetic import SyntheticWorld, WorldConfig
 
 GEOMETRY = ClosureGeometry()
@@ -98,8 +98,7 @@ def test_mono_gives_yaw_and_direction(worlds):
             z.append(yaw_error ** 2 / result.covariance[2, 2])
             if math.hypot(truth[0], truth[1]) >= 0.2 and (result.forward or result.left):
                 assert math.hypot(result.forward, result.left) == pytest.approx(1.0)
-                direction_errors.append(abs(math.degrees(math.remainder(
-                    math.atan2(result.left, result.forward) - math.atan2(truth[1], truth[0]), 2 * math.pi))))
+                direction_errors.append(direction_error(result, truth))
     # Few matches and little depth range make some views ambiguous (docs/closure_geometry.md).
     assert len(yaw_errors) >= 20
     assert np.median(yaw_errors) < 0.6 and np.percentile(yaw_errors, 80) < 1.5 and max(yaw_errors) < 8.0
