@@ -15,6 +15,7 @@ BENCHMARKS: dict[str, str] = {
     "load": "services.pipeline.load",
     "loopclosure": "services.loopclosure.bench",
     "mapping": "services.expmap.bench",
+    "geometry": "services.loopclosure.geometry_bench",
 }
 
 
