@@ -74,7 +74,7 @@ class MonoParams(NoiseModel):
     sigma_translation_floor: float = 0.002
     sigma_yaw: float = 0.03
     sigma_yaw_per_m: float = 0.01
-    sigma_yaw_floor: float = 0.001
+    sigma_yaw_floor: float = 0.003
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -51,6 +51,7 @@ class OdometryResult:
     seconds: np.ndarray  # (N,) wall time of each estimate() call
     scaled: bool  # False when any increment lacks metric scale
     trajectory: Trajectory  # dead-reckoned planar trajectory (x forward, y left at the start)
+    covariances: np.ndarray | None = None  # (N, 3, 3) of each increment, from the estimator's noise model
     ground_truth: Trajectory | None = None  # planar, re-anchored at the first frame
     reference: Trajectory | None = None  # planar, re-anchored at the first frame
     reference_label: str = "reference"
@@ -79,11 +80,14 @@ def odometry(
     """
     rows: list[tuple[int, float, Increment, float]] = []
     poses: list[np.ndarray | None] = []
+    covariances: list[np.ndarray] = []
     for frame in source:
         start = time.perf_counter()
         increment = estimator.estimate(frame)
         elapsed = time.perf_counter() - start
         rows.append((int(frame.seq), float(frame.stamp), increment, elapsed))
+        covariance = estimator.params.covariance(increment) if hasattr(estimator.params, "covariance") else None
+        covariances.append(np.full((3, 3), np.nan) if covariance is None else covariance)
         poses.append(None if frame.ground_truth is None else np.asarray(frame.ground_truth, dtype=float))
         if progress is not None:
             progress(len(rows), increment)
@@ -116,6 +120,7 @@ def odometry(
         seconds=np.array([r[3] for r in rows]),
         scaled=all(r[2].scaled for r in rows),
         trajectory=trajectory,
+        covariances=np.array(covariances),
         ground_truth=ground_truth,
         reference=selected_reference,
         reference_label=reference_label,
@@ -234,7 +239,24 @@ def evaluate(result: OdometryResult) -> dict[str, Any]:
             metrics[label] = compare(result.trajectory, truth, scaled=result.scaled)
             if label == "reference":
                 metrics[label]["label"] = result.reference_label
+    if result.ground_truth is not None and result.covariances is not None and n > 1:
+        metrics["uncertainty"] = uncertainty(result.increments[1:], np.column_stack(planar_increments(result.ground_truth))[1:],
+                                             result.covariances[1:])
     return metrics
+
+
+def uncertainty(increments: np.ndarray, truth: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
+    """How the noise model's standard deviations compare with the errors per frame: the rms
+    error, the median modelled σ and the mean normalised squared error (error² / σ², 1 for a
+    calibrated model, below 1 for a cautious one), each for forward, left and yaw."""
+    errors = increments - truth
+    errors[:, 2] = (errors[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    sigma = np.sqrt(np.diagonal(covariances, axis1=1, axis2=2))
+    known = np.isfinite(sigma).all(axis=1)
+    if not known.any():
+        return {}
+    return {"rms": np.sqrt((errors ** 2).mean(axis=0)).tolist(), "sigma_median": np.median(sigma[known], axis=0).tolist(),
+            "normalised_squared_error": ((errors[known] / sigma[known]) ** 2).mean(axis=0).tolist()}
 
 
 def _step(seqs: np.ndarray) -> int:
@@ -371,4 +393,9 @@ def summary_rows(result: OdometryResult) -> list[tuple[str, Any, str]]:
                 rows.append((f"translation error per frame, RMSE{suffix}", errors["trans_rmse"], "m"))
         if scores.get("endpoint"):
             rows.append((f"endpoint error vs {name}", scores["endpoint"]["metres"], "m"))
+    for what, key, unit in (("error per frame, rms", "rms", "m, m, rad"), ("noise model σ, median", "sigma_median", "m, m, rad"),
+                            ("normalised squared error", "normalised_squared_error", "1: calibrated")):
+        values = m.get("uncertainty", {}).get(key)
+        if values:
+            rows.append((f"{what} (forward, left, yaw)", ", ".join(f"{v:.3g}" for v in values), unit))
     return rows

@@ -2,20 +2,22 @@
 
 - `PoseGraph` (`optimizer = "gtsam"`): the map as a pose graph solved incrementally by gtsam's
   iSAM2 (Kaess et al., IJRR 2012), QR factorisation (stable on long chains where the default
-  Cholesky failed in a trial). Odometric links are Gaussian factors whose standard deviations
-  grow with the distance they span. A closure is first tested against the graph: its
-  innovation — the difference between the relative pose it measures and the one the map
-  predicts, weighed by both uncertainties (the closure's covariance plus the joint marginal
-  covariance of its two experiences) — must be within `closure_gate` standard deviations
-  (a χ² test, 3 degrees of freedom). A closure the odometry contradicts is refused and never
-  enters the graph. An accepted one is added under a robust kernel (Cauchy by default), so
-  that a wrong closure that passed the test still pulls little, and the solver iterates
-  `closure_iterations` more times.
+  Cholesky failed in a trial). Odometric links are Gaussian factors with the covariance of the
+  odometry they span. A closure is tested against the graph: it is added, the graph solved,
+  and the rise of the graph's χ² (twice gtsam's error) it caused is its innovation squared —
+  for a linear problem exactly the Mahalanobis norm of the difference between the relative
+  pose it measures and the one the map predicted, weighed by the closure's covariance and the
+  map's own uncertainty between its two experiences — computed without the joint marginal
+  covariance, which costs a pass down the Bayes tree. Within `closure_gate` standard deviations
+  it is accepted and kept under a robust kernel (Cauchy by default, `kernel_width` standard
+  deviations wide), so that a closure that later proves wrong pulls little; beyond, the odometry
+  contradicts it: it is removed and the graph settles back, so a refused closure does not bend
+  the map.
   The graph is solved only on frames with a closure: between closures the map is a chain, and
   a new experience's estimate is its predecessor's composed with the odometry, exactly what the
-  solver would give, so such frames cost nothing that grows with the map. (iSAM2 updates cost
-  time proportional to the map in gtsam 4.3: its Bayes-tree destructor visits every clique
-  below the part it re-eliminates — measured in docs/mapping.md.)
+  solver would give, so such frames cost nothing that grows with the map. (An iSAM2 update
+  costs time proportional to the map in gtsam 4.3: its Bayes-tree destructor visits every
+  clique below the part it re-eliminates — measured in docs/mapping.md.)
 - `Relaxation` (`optimizer = "ratslam"`): RatSLAM's graph relaxation. Every link pulls both of
   its ends toward agreement with its transform by `correction` (0.5, as in RatSLAM) of the
   disagreement; headings the same way. All links act at once and a node's pulls are averaged
@@ -29,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.expmap.graph import MOVED, ExperienceMap, Link, adjoint, inverse, wrap
+from services.expmap.graph import MOVED, ExperienceMap, Link, wrap
 
 # Published poses refreshed per solve besides those the solver re-eliminated: every solved
 # experience is refreshed at least once every len(map) / REFRESH_PER_SOLVE solves.
@@ -49,6 +51,7 @@ class PoseGraph:
         params.relinearizeSkip = 1
         params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
         params.enablePartialRelinearizationCheck = True
+        params.evaluateNonlinearError = True   # the closure test reads the graph's error
         self.isam = gtsam.ISAM2(params)
         self._factors = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
@@ -71,16 +74,23 @@ class PoseGraph:
         self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
 
     def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, float]:
-        """Test a closure against the graph, add it when it passes; (accepted, innovation in std devs)."""
-        self._update()   # the experiences and links so far are in the solver
-        innovation = self._innovation(link, covariance)
+        """Test a closure against the graph and keep it when it passes; (accepted, innovation in std devs)."""
+        before = self._update()   # the experiences and links so far are in the solver
+        self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
+        after = self._update()
+        index = after.getNewFactorsIndices()[-1]
+        for _ in range(self.map.params.closure_iterations):
+            after = self._update()
+        innovation = float(np.sqrt(max(2.0 * (after.getErrorAfter() - before.getErrorAfter()), 0.0)))
         accepted = innovation <= self.map.params.closure_gate
+        if accepted and self._kernel is not None:   # kept under the robust kernel
+            self._factors.add(self._factor(link, self.gtsam.noiseModel.Robust.Create(
+                self._kernel, self.gtsam.noiseModel.Gaussian.Covariance(covariance))))
         if accepted:
-            noise = self.gtsam.noiseModel.Gaussian.Covariance(covariance)
             if self._kernel is not None:
-                noise = self.gtsam.noiseModel.Robust.Create(self._kernel, noise)
-            self._factors.add(self._factor(link, noise))
-            self._update()
+                self._update(remove=[index])
+        else:   # refused: out of the graph, and the estimate settles back without it
+            self._update(remove=[index])
             for _ in range(self.map.params.closure_iterations):
                 self._update()
         return accepted, innovation
@@ -88,25 +98,12 @@ class PoseGraph:
     def _factor(self, link: Link, noise):
         return self.gtsam.BetweenFactorPose2(link.source, link.target, self.gtsam.Pose2(*link.transform), noise)
 
-    def _update(self) -> None:
-        result = self.isam.update(self._factors, self._values)
+    def _update(self, remove: list[int] | None = None):
+        result = self.isam.update(self._factors, self._values, remove or [])
         self._solved += self._values.size()
         self._factors, self._values = self.gtsam.NonlinearFactorGraph(), self.gtsam.Values()
         self._refresh.update(result.getMarkedKeys())
-
-    def _innovation(self, link: Link, covariance: np.ndarray) -> float:
-        """How far the link's measurement is from the map's prediction, in standard deviations of
-        both: the Mahalanobis norm of Log(measured⁻¹ ∘ predicted) under the closure's covariance
-        plus the predicted relative pose's, from the joint marginal of its two experiences."""
-        source, target = (self.isam.calculateEstimatePose2(key) for key in (link.source, link.target))
-        predicted = source.between(target)
-        error = self.gtsam.Pose2.Logmap(self.gtsam.Pose2(*link.transform).between(predicted))
-        joint = self.isam.jointMarginalCovariance(self.gtsam.KeyVector([link.source, link.target]))
-        blocks = [[joint.at(a, b) for b in (link.source, link.target)] for a in (link.source, link.target)]
-        # predicted ∘ Exp(ε) = (source ∘ Exp(δs))⁻¹ ∘ target ∘ Exp(δt): ε = δt − Ad(predicted⁻¹) δs
-        jacobian = np.hstack([-adjoint(inverse((predicted.x(), predicted.y(), predicted.theta()))), np.eye(3)])
-        relative = jacobian @ np.block(blocks) @ jacobian.T
-        return float(np.sqrt(error @ np.linalg.solve(covariance + relative, error)))
+        return result
 
     # --- results ----------------------------------------------------------------------------------
     def solve(self, closure_frame: bool) -> list[int]:
