@@ -161,6 +161,8 @@ def run_build(args) -> int:
         ("possible closures elsewhere", summary["possible_closures_elsewhere"], f"> {args.same_place_radius:g} m"),
         ("confirmed closures", summary["confirmed_closures"], ""),
         ("confirmed closures elsewhere", summary["confirmed_closures_elsewhere"], f"> {args.same_place_radius:g} m"),
+        ("closures accepted / rejected / unmeasured by the map",
+         f"{summary['closures_accepted']} / {summary['closures_rejected']} / {summary['closures_unmeasured']}", ""),
         ("first confirmed", f"frame {first['frame']} ↔ frame {first['matched_frame']}" if first else "-", ""),
         ("confirmed at frames", "{}..{}".format(*summary["confirmed_frames"]) if first else "-", ""),
         ("matched frames", ",".join(map(str, summary["matched_frames"])) or "-", ""),

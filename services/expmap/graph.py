@@ -193,6 +193,7 @@ class MapState:
 
 
 MOVED = np.array([1e-3, 1e-3, 1e-4])   # what counts as moved: 1 mm, 0.1 mrad
+IDENTITY = (0.0, 0.0, 0.0)
 
 
 class ExperienceMap:
@@ -210,7 +211,7 @@ class ExperienceMap:
         self.frames: list[tuple[int, int, tuple[float, float, float]]] = []   # (frame, experience, offset)
         self.last_frame: int | None = None
         self.closures = {"accepted": 0, "rejected": 0, "unmeasured": 0, "unmatched": 0}
-        self._by_frame: dict[int, int] = {}             # frame of creation → experience
+        self._frame_at: dict[int, int] = {}             # frame → its row of `frames`
         self._by_template: dict[int, int] = {}          # template → its latest experience
         from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
         self.optimizer = PoseGraph(self) if params.optimizer == "gtsam" else Relaxation(self)
@@ -238,14 +239,14 @@ class ExperienceMap:
             self._accumulate(between(self.last_odometry, odometry), covariance)
         self.last_odometry = odometry
         offset = between(self.anchor, odometry)
-        target = self._experience_of(closure) if closure is not None else None
+        target, matched_offset = self._place_of(closure) if closure is not None else (None, None)
         if closure is not None and target is None:
             result.closure = "unmatched"
-        if target is not None and self.params.closure == "ratslam":
-            link = self._closure_link(self.current, target, offset, (0.0, 0.0, 0.0), frame)
+        if target is not None and self.params.closure == "ratslam":   # the robot is where the matched frame was
+            link = self._closure_link(self.current, target, offset, IDENTITY, matched_offset, frame)
             if self._decide(link, self._snap_covariance(), result):
-                self._move_to(target, odometry)
-                offset = (0.0, 0.0, 0.0)
+                self._move_to(target, compose(odometry, inverse(matched_offset)))
+                offset = matched_offset
         if math.hypot(offset[0], offset[1]) > self.params.new_experience_distance or \
                 template_id != self.templates[self.current]:
             new = self._add_experience(compose(tuple(self._poses[self.current]), offset), template_id, frame, result)
@@ -258,14 +259,16 @@ class ExperienceMap:
             if not closure.measured:
                 result.closure = "unmeasured"
             elif target != self.current:
-                measurement, covariance = self._measurement(closure, target, offset)
-                self._decide(self._closure_link(self.current, target, offset, measurement, frame), covariance, result)
+                measurement, covariance = self._measurement(closure, target, matched_offset, offset)
+                self._decide(self._closure_link(self.current, target, offset, measurement, matched_offset, frame),
+                             covariance, result)
         if result.closure is not None:
             self.closures[result.closure] += 1
         moved = self.optimizer.solve(closure_frame=result.closure in ("accepted", "rejected"))
         result.moved = [i for i in moved if i not in result.new_experiences]
         result.experience = self.current
         result.pose = compose(tuple(self._poses[self.current]), offset)
+        self._frame_at[frame] = len(self.frames)
         self.frames.append((frame, self.current, offset))
         self.last_frame = frame
         return result
@@ -286,17 +289,23 @@ class ExperienceMap:
                         self.links[:])
 
     # --- closures ---------------------------------------------------------------------------------
-    def _experience_of(self, closure: ClosureInput) -> int | None:
-        """The experience made at the matched frame, else the latest with the matched template."""
-        found = self._by_frame.get(closure.matched_frame)
-        if found is not None and self.templates[found] == closure.matched_template:
-            return found
-        return self._by_template.get(closure.matched_template)
+    def _place_of(self, closure: ClosureInput) -> tuple[int | None, tuple[float, float, float] | None]:
+        """Where the matched frame was: the experience the robot was at then and its offset from
+        it; a frame the map never had falls back to the latest experience of the matched template."""
+        index = self._frame_at.get(closure.matched_frame)
+        if index is not None:
+            _, experience, offset = self.frames[index]
+            return experience, offset
+        experience = self._by_template.get(closure.matched_template)
+        return (experience, IDENTITY) if experience is not None else (None, None)
 
-    def _closure_link(self, current: int, target: int, offset, measurement, frame: int) -> Link:
+    @staticmethod
+    def _closure_link(current: int, target: int, offset, measurement, matched_offset, frame: int) -> Link:
         """The link current → target when the current frame, at `offset` from `current`, sits at
-        `measurement` in the target's frame: offset ∘ measurement⁻¹."""
-        return Link(current, target, *compose(offset, inverse(measurement)), frame, loop_closure=True)
+        `measurement` from the matched frame, at `matched_offset` from `target`:
+        offset ∘ measurement⁻¹ ∘ matched_offset⁻¹."""
+        transform = compose(compose(offset, inverse(measurement)), inverse(matched_offset))
+        return Link(current, target, *transform, frame, loop_closure=True)
 
     def _decide(self, link: Link, covariance: np.ndarray, result: FrameResult) -> bool:
         accepted, residual = self.optimizer.add_closure(link, covariance)
@@ -305,15 +314,16 @@ class ExperienceMap:
         result.residual = residual
         return accepted
 
-    def _measurement(self, closure: ClosureInput, target: int, offset) -> tuple[tuple[float, float, float], np.ndarray]:
-        """The measured pose of the current frame in the target experience's frame, and the
-        covariance of the link current → target that carries it (right-hand tangent perturbation,
-        the convention of the pose graph's factors)."""
+    def _measurement(self, closure: ClosureInput, target: int, matched_offset, offset) -> tuple[tuple[float, float, float], np.ndarray]:
+        """The measured pose of the current frame in the matched frame's, and the covariance of the
+        link current → target that carries it (right-hand tangent perturbation, the convention of
+        the pose graph's factors)."""
         covariance = np.array(closure.covariance, dtype=float).reshape(3, 3)
         forward, left = closure.forward, closure.left
         if closure.method == "mono":   # a direction: its length from the map's own estimate
             frame_pose = compose(tuple(self._poses[self.current]), offset)
-            length = math.hypot(*between(tuple(self._poses[target]), frame_pose)[:2])
+            matched_pose = compose(tuple(self._poses[target]), matched_offset)
+            length = math.hypot(*between(matched_pose, frame_pose)[:2])
             norm = math.hypot(forward, left) or 1.0
             forward, left = forward / norm * length, left / norm * length
             along = np.array([forward, left]) / max(length, 1e-9)
@@ -326,8 +336,9 @@ class ExperienceMap:
         to_tangent = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
         # The odometry from the current experience to this frame (the offset) is uncertain too.
         tangent = to_tangent @ covariance @ to_tangent.T + self.offset_covariance
-        # The link offset ∘ measurement⁻¹ with measurement ∘ Exp(δ) is the link ∘ Exp(−Ad(measurement) δ).
-        carry = adjoint(measurement)
+        # The link offset ∘ measurement⁻¹ ∘ matched⁻¹, with measurement ∘ Exp(δ) (or offset ∘ Exp(δ)), is the
+        # link ∘ Exp(∓Ad(matched ∘ measurement) δ).
+        carry = adjoint(compose(matched_offset, measurement))
         return measurement, carry @ tangent @ carry.T
 
     def _snap_covariance(self) -> np.ndarray:
@@ -366,7 +377,6 @@ class ExperienceMap:
         self._poses[index] = pose
         self.templates.append(template_id)
         self.created.append(frame)
-        self._by_frame[frame] = index
         self._by_template[template_id] = index
         self.optimizer.add_experience(index, pose)
         result.new_experiences.append(index)

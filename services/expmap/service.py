@@ -118,6 +118,10 @@ class ExpMapService(Service):
             self._remember(result)
             rows += self._closure_rows(step, result)
         if self.csv_path is not None:   # written afresh from the journal: a crash never leaves it behind
+            try:
+                self.csv_path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as error:
+                raise PersistenceError(f"{self.csv_path.parent}: cannot create ({error.strerror or error})") from None
             self._write_closures(rows, "w")
         if self.store.steps:
             log.info("expmap resumed from %s: %d frames, %d experiences, %d links", config.store,
