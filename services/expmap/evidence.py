@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+
 from services.common.errors import DataError
 from services.evaluation import metrics
 from services.evaluation.plots import new_figure, save

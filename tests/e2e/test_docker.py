@@ -230,12 +230,10 @@ class Poses:
         with self.lock:
             return len(self.seqs)
 
-    def wait(self, more: int = 1, timeout: float = 60) -> float:
-        """Waits for `more` poses beyond those seen so far; returns the seconds the first took."""
-        started, seen = time.monotonic(), self.count()
+    def wait(self, more: int = 1, timeout: float = 60) -> None:
+        """Waits for `more` poses beyond those seen so far."""
+        seen = self.count()
         wait_for(lambda: self.count() >= seen + more, timeout=timeout, period=0.1)
-        with self.lock:
-            return self.arrivals[seen] - started
 
     def longest_pause(self, since: float) -> float:
         """The longest time between two poses that arrived after `since` (or between `since` and the first)."""
