@@ -7,10 +7,10 @@ BIN = $(VENV)/bin
 $(BIN)/gridslam: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[test]'
+	$(BIN)/python -m pip install -q -e '.[plots,test]'
 	touch $@
 
-.PHONY: demo test bench
+.PHONY: demo test bench wheels docker-test
 demo: $(BIN)/gridslam
 	$(BIN)/gridslam demo
 
@@ -21,3 +21,15 @@ test: $(BIN)/gridslam
 
 bench: $(BIN)/gridslam
 	$(BIN)/gridslam bench
+
+# Wheels of every dependency (and of setuptools, the project's build backend) for an image
+# built without network: GRIDSLAM_WHEELS=true docker-compose build (docs/deploy.md). PYTHON
+# must be the image's Python version (3.11) on its architecture.
+wheels:
+	$(PYTHON) -m pip wheel -q --wheel-dir deploy/wheels . 'setuptools>=70.1'
+	rm -f deploy/wheels/gridslam-*.whl
+
+# The image, the compose stack and the swarm stack on a real Docker engine (tests/e2e/test_docker.py;
+# also part of `make test`). As root it installs and starts an engine where there is none.
+docker-test: $(BIN)/gridslam
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q tests/e2e/test_docker.py

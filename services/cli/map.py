@@ -100,7 +100,8 @@ def run_export(args) -> int:
                          "corrected (final map)": corrected_trajectory(result.experience_map, result.map_log.steps)}
         result.files["plot"] = plot_trajectories(args.plot, trajectories, title=f"Experience map of {args.store}")
     for name, path in result.files.items():
-        print(f"{name}: {path}")
+        if path is not None:   # (a plot, without matplotlib)
+            print(f"{name}: {path}")
     return 0
 
 

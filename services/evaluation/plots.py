@@ -3,6 +3,10 @@
 
 matplotlib's object API with the Agg canvas: no pyplot, so no global backend or figure
 state is touched and the functions are safe in any process and thread of their own.
+
+matplotlib is the optional extra `plots` (the services never plot, so the container image
+leaves it out): it is imported on the first plot, and without it every plot function writes
+nothing, returns None and the process says so once.
 """
 
 from __future__ import annotations
@@ -11,9 +15,6 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.lines import Line2D
 
 from services.common.errors import DataError
 from services.evaluation.trajectory import Trajectory
@@ -28,7 +29,26 @@ class PlotError(DataError):
     """Data handed to a plot does not fit (the message names the series)."""
 
 
-def _save(figure: Figure, png_path) -> Path:
+_missing_said = False
+
+
+def new_figure(**options):
+    """A matplotlib Figure (Agg canvas), or None without matplotlib (said once per process)."""
+    global _missing_said
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        if not _missing_said:
+            log.warning("matplotlib is not installed: no PNG plots are written (pip install 'gridslam[plots]')")
+            _missing_said = True
+        return None
+    return Figure(**options)
+
+
+def save(figure, png_path) -> Path:
+    """Write `figure` as a PNG, making its folder."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     path = Path(png_path)
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(figure)
@@ -37,11 +57,15 @@ def _save(figure: Figure, png_path) -> Path:
     return path
 
 
-def plot_trajectories(png_path, trajectories: dict[str, Trajectory], title: str = "") -> Path:
+def plot_trajectories(png_path, trajectories: dict[str, Trajectory], title: str = "") -> Path | None:
     """Trajectories seen from above (x, y in metres, equal aspect), each with a circle at
     its start and a square at its end. A trajectory labelled like ground truth
     ("groundtruth", "gt", "reference") is drawn as a black dashed line beneath the others."""
-    figure = Figure(figsize=(7.0, 6.0), layout="constrained")
+    figure = new_figure(figsize=(7.0, 6.0), layout="constrained")
+    if figure is None:
+        return None
+    from matplotlib.lines import Line2D
+
     axes = figure.add_subplot()
     colours = iter(f"C{k}" for k in range(100))
     drawn = 0
@@ -73,13 +97,15 @@ def plot_trajectories(png_path, trajectories: dict[str, Trajectory], title: str 
     axes.grid(True, alpha=0.3)
     if title:
         axes.set_title(title)
-    return _save(figure, png_path)
+    return save(figure, png_path)
 
 
-def plot_series(png_path, series: dict[str, tuple], xlabel: str, ylabel: str, title: str = "") -> Path:
+def plot_series(png_path, series: dict[str, tuple], xlabel: str, ylabel: str, title: str = "") -> Path | None:
     """Line plots of {label: (x, y)} on shared axes, e.g. error over frames, or template and
     experience counts over frames (the paper's Fig. 10)."""
-    figure = Figure(figsize=(8.0, 4.5), layout="constrained")
+    figure = new_figure(figsize=(8.0, 4.5), layout="constrained")
+    if figure is None:
+        return None
     axes = figure.add_subplot()
     for label, (x, y) in series.items():
         x, y = np.asarray(x, dtype=float).reshape(-1), np.asarray(y, dtype=float).reshape(-1)
@@ -93,15 +119,17 @@ def plot_series(png_path, series: dict[str, tuple], xlabel: str, ylabel: str, ti
     axes.grid(True, alpha=0.3)
     if title:
         axes.set_title(title)
-    return _save(figure, png_path)
+    return save(figure, png_path)
 
 
-def plot_heatmaps(png_path, images: dict[str, np.ndarray], title: str = "", cmap: str = "viridis") -> Path:
+def plot_heatmaps(png_path, images: dict[str, np.ndarray], title: str = "", cmap: str = "viridis") -> Path | None:
     """2-D arrays side by side, each with its own colour scale, e.g. snapshots of the
     grid-cell lattice at several frames (the paper's Fig. 1)."""
     if not images:
         raise PlotError("no images to plot")
-    figure = Figure(figsize=(3.2 * len(images), 3.6), layout="constrained")
+    figure = new_figure(figsize=(3.2 * len(images), 3.6), layout="constrained")
+    if figure is None:
+        return None
     for index, (label, image) in enumerate(images.items()):
         image = np.asarray(image, dtype=float)
         if image.ndim != 2:
@@ -114,4 +142,4 @@ def plot_heatmaps(png_path, images: dict[str, np.ndarray], title: str = "", cmap
         axes.set_yticks([])
     if title:
         figure.suptitle(title)
-    return _save(figure, png_path)
+    return save(figure, png_path)

@@ -22,11 +22,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from services.common.errors import DataError
 from services.evaluation import metrics
+from services.evaluation.plots import new_figure, save
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.export import corrected_trajectory, graph_dict, odometry_trajectory
@@ -39,7 +38,6 @@ from services.loopclosure.detector import LoopClosureDetector
 
 log = logging.getLogger(__name__)
 
-DPI = 120
 CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "place_distance_m", "same_place")
 FRAME_COLUMNS = ("frame", "template_id", "is_new", "distance", "matched_frame", "possible_closure", "loop_closure", "experience")
 
@@ -214,18 +212,12 @@ def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetec
 
 
 # --- plots ------------------------------------------------------------------------------------
-def _save(figure: Figure, path: Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    FigureCanvasAgg(figure)
-    figure.savefig(path, dpi=DPI, format="png")
-    return path
-
-
-def plot_ids_over_frames(png_path, run: OfflineMap, radius: float, title: str = "") -> Path:
+def plot_ids_over_frames(png_path, run: OfflineMap, radius: float, title: str = "") -> Path | None:
     """The paper's Fig. 10: view-template id and experience id against frame, with the
     possible closures (matches of non-recent templates) and the confirmed ones marked."""
-    figure = Figure(figsize=(8.0, 6.0), layout="constrained")
+    figure = new_figure(figsize=(8.0, 6.0), layout="constrained")
+    if figure is None:
+        return None
     top, bottom = figure.subplots(2, 1, sharex=True)
     top.step(run.frames, run.template_ids, where="post", color="C0", linewidth=1.2, label="view template")
     bottom.step(run.frames, run.experiences, where="post", color="C1", linewidth=1.2, label="experience")
@@ -246,7 +238,7 @@ def plot_ids_over_frames(png_path, run: OfflineMap, radius: float, title: str = 
     bottom.set_xlabel("frame")
     if title:
         top.set_title(title)
-    return _save(figure, png_path)
+    return save(figure, png_path)
 
 
 def _draw_map(axes, poses: np.ndarray, links: list[Link], odometry: np.ndarray | None, title: str) -> None:
@@ -268,10 +260,12 @@ def _draw_map(axes, poses: np.ndarray, links: list[Link], odometry: np.ndarray |
     axes.legend(loc="best", fontsize="x-small")
 
 
-def plot_map_correction(png_path, run: OfflineMap, title: str = "") -> Path:
+def plot_map_correction(png_path, run: OfflineMap, title: str = "") -> Path | None:
     """The experience map just before its first loop-closure link (odometry only) beside the
     final relaxed map, and the per-frame trajectory before and after correction."""
-    figure = Figure(figsize=(15.0, 5.2), layout="constrained")
+    figure = new_figure(figsize=(15.0, 5.2), layout="constrained")
+    if figure is None:
+        return None
     left, middle, right = figure.subplots(1, 3)
     if run.before is not None:
         _draw_map(left, run.before.poses, run.before.links, run.odometry,
@@ -296,7 +290,7 @@ def plot_map_correction(png_path, run: OfflineMap, title: str = "") -> Path:
     right.legend(loc="best", fontsize="x-small")
     if title:
         figure.suptitle(title)
-    return _save(figure, png_path)
+    return save(figure, png_path)
 
 
 # --- results ----------------------------------------------------------------------------------

@@ -154,7 +154,7 @@ def write_report(folder: Path, recording: Recording, result: dict, trajs: dict[s
         picks = sorted({seqs[int(i)] for i in np.linspace(0, len(seqs) - 1, min(4, len(seqs)))})
         written.append(plots.plot_heatmaps(folder / "lattice.png", {f"frame {s}": recording.lattices[s] for s in picks},
                                            title="Grid-cell activity (paper Fig. 1)"))
-    return written
+    return [path for path in written if path is not None]   # (a plot is None without matplotlib)
 
 
 def summary_rows(result: dict) -> list[tuple[str, object, str]]:

@@ -325,8 +325,11 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
     while True:
         for name in stages:
-            if supervisor.exited(name) is not None:
-                raise RunError(f"service {name} exited at start-up (code {supervisor.exited(name)}): "
+            code = supervisor.exited(name)
+            if code is not None and code < 0:   # killed by a signal: restarted, as in the run
+                supervisor.restart(name)
+            elif code is not None:              # an error of its own (a bad setting): restarting cures nothing
+                raise RunError(f"service {name} exited at start-up (code {code}): "
                                f"{supervisor.log_tail(name)} (log: {supervisor.children[name].log_path})")
         live = recorder.live_services()
         missing = set(stages) - live

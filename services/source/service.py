@@ -5,12 +5,19 @@ at most `window` frames in flight, counting a frame done when its `ack_topic` me
 default `map/pose`, the last stage) arrives. A live camera keeps at most `live_window` frames in
 flight and then takes the camera's newest frame: the frames the pipeline has no time for are
 dropped at the camera, so none waits in a queue on the way and latency stays bounded.
+
+With `wait_for`, the first frame waits until those services' health tokens are on the network
+(started all at once, as docker-compose does, the pipeline is not there yet). With `loop`, the
+source starts again at its first frame after its last, for ever (a demo that keeps running):
+`seq` and the stamps go on from the last lap's, so the pipeline sees one long run through the
+same world and keeps building the same map.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -21,10 +28,11 @@ from schemas import CameraFrame, CameraInfo, PlanarIncrement
 from schemas.base import Message
 from services.common.config import load_config
 from services.common.convert import image_to_msg, matrix_to_pose
+from services.common.health import live_services
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.topics import TOPICS
-from services.source.frames import Frame, FrameSource
+from services.source.frames import Frame, FrameSource, planar_motion
 from services.source.spec import open_source
 
 log = logging.getLogger(__name__)
@@ -62,6 +70,12 @@ class SourceConfig(BaseModel):
                                "(a service restarted downstream lost them; services that already handled a frame "
                                "replay their outputs instead of computing them again).")
     exit_at_end: bool = Field(True, description="Exit once the last frame is acknowledged (or sent, without flow control).")
+    loop: bool = Field(
+        False, description="After the last frame start again at the first, for ever; seq and stamps go on from the last "
+                           "lap's (meant for a closed route such as the synthetic world's).")
+    wait_for: list[str] = Field(
+        default_factory=list, description="Services whose health tokens must all be on the network before the first "
+                                          "frame (e.g. egomotion, gridcells, loopclosure, expmap).")
 
 
 def frame_message(frame: Frame, header) -> CameraFrame:
@@ -101,6 +115,13 @@ class SourceService(Service):
         self.waiting_since: float | None = None
         self.unreachable = False                   # camera/frame lost every subscriber after the first frame
         self.reconnected_at: float | None = None   # when it regained one
+        self.pipeline_ready = not config.wait_for  # the services of wait_for were seen
+        self.pipeline_checked = 0.0
+        self.pipeline_wait_said = False
+        self.laps = 0                               # laps completed (loop)
+        self.first: Frame | None = None             # the first frame of the source, and the last one read
+        self.last: Frame | None = None
+        self.seq_offset, self.stamp_offset = 0, 0.0  # added to the frames of the current lap
 
     def setup(self) -> None:
         if self.window:
@@ -151,10 +172,10 @@ class SourceService(Service):
                 self._pause(min(delay, 0.05))
                 return
             self.next_due = max(self.next_due, time.monotonic() - 1.0) + 1.0 / self.config.rate
-        if self.sent == 0 and not self._subscribers_ready():
+        if self.sent == 0 and not (self._pipeline_ready() and self._subscribers_ready()):
             self._pause(0.05)
             return
-        frame = next(self.iterator, None)
+        frame = self._next_frame()
         if frame is None:
             self.finished = True
             return
@@ -166,6 +187,37 @@ class SourceService(Service):
             if not self.in_flight:
                 self.last_progress = time.monotonic()
             self.in_flight[frame.seq] = message
+
+    def _next_frame(self) -> Frame | None:
+        """The next frame, as sent: with `loop`, lap after lap."""
+        frame = next(self.iterator, None)
+        if frame is None and self.config.loop and self.first is not None:
+            self._new_lap()
+            frame = next(self.iterator, None)
+        if frame is None:
+            return None
+        lap_start = self.laps > 0 and self.last is not None and self.last.seq > frame.seq
+        previous, self.last = self.last, frame
+        if self.first is None:
+            self.first = frame
+        if self.laps == 0:
+            return frame
+        if lap_start and previous.ground_truth is not None and frame.ground_truth is not None:
+            # The dataset's first frame has no motion of its own; on a new lap it moved from the last one.
+            frame = dataclasses.replace(frame, odometry=planar_motion(previous.ground_truth, frame.ground_truth))
+        return dataclasses.replace(frame, seq=frame.seq + self.seq_offset, stamp=frame.stamp + self.stamp_offset)
+
+    def _new_lap(self) -> None:
+        """Go on from the first frame: seq and stamps continue one frame step after the last frame's."""
+        first, last = self.first, self.last
+        span = last.seq - first.seq
+        step = self.config.step
+        self.seq_offset += span + step
+        self.stamp_offset += (last.stamp - first.stamp) * (span + step) / span if span else 0.0
+        self.laps += 1
+        self.iterator = iter(self.frames)
+        log.info("source: lap %d done (%d frames sent); starting lap %d at seq %d", self.laps, self.sent, self.laps + 1,
+                 first.seq + self.seq_offset)
 
     def _resend(self, reason: str) -> None:
         if self.live:   # old frames of a live camera are worth nothing: make room for the newest
@@ -190,6 +242,22 @@ class SourceService(Service):
             extra["frames_dropped"] = getattr(self.frames, "frames_dropped", 0)
             extra["frames_abandoned"] = self.abandoned
         return {**super().extra_counters(), **extra}
+
+    def _pipeline_ready(self) -> bool:
+        """Hold the first frame until every service of `wait_for` has its health token on the network."""
+        now = time.monotonic()
+        if self.pipeline_ready or now - self.pipeline_checked < 0.2:
+            return self.pipeline_ready
+        self.pipeline_checked = now
+        live = {service for _, service, _ in live_services(self.session, self.robot, timeout=1.0)}
+        missing = sorted(set(self.config.wait_for) - live)
+        if not missing:
+            log.info("source: %s on the network; sending", ", ".join(self.config.wait_for))
+            self.pipeline_ready = True
+        elif not self.pipeline_wait_said:
+            log.info("source: waiting for %s to come up", ", ".join(missing))
+            self.pipeline_wait_said = True
+        return self.pipeline_ready
 
     def _subscribers_ready(self) -> bool:
         """Hold the first frame until someone subscribes to camera/frame (none is lost at start)."""
@@ -222,11 +290,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live-window", type=int, help="frames in flight from a live camera (default 2; 0: no flow control)")
     parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
     parser.add_argument("--resend-after", type=float, help="seconds without acknowledgement before resending (default 5)")
+    parser.add_argument("--loop", action="store_true", default=None, help="start again at the first frame after the last, for ever")
+    parser.add_argument("--wait-for", type=lambda text: [name.strip() for name in text.split(",") if name.strip()],
+                        help="services whose health tokens must be up before the first frame, comma separated")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
-              "resend_after")
+              "resend_after", "loop", "wait_for")
     config = load_config(SourceConfig, "source", config_file=args.config,
                          overrides={name: getattr(args, name) for name in fields})
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,

@@ -344,7 +344,7 @@ def local_environment(robot_env: dict[str, str], router: str, results: Path) -> 
     env = {name: value.replace("/results", str(results), 1) if value.startswith("/results") else value
            for name, value in robot_env.items()}
     env.update(GRIDSLAM_RUNTIME_CONNECT=router, GRIDSLAM_VIEWER_HTTP="127.0.0.1:0", GRIDSLAM_VIEWER_ALLOW_REMOTE="false",
-               GRIDSLAM_SOURCE_STOP=str(FRAMES))
+               GRIDSLAM_SOURCE_STOP=str(FRAMES), GRIDSLAM_SOURCE_LOOP="false")
     return env
 
 

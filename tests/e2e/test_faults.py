@@ -84,3 +84,25 @@ def test_kill_each_service_in_turn(tmp_path):
     assert journal(faulty / "view_templates.log") == journal(reference / "view_templates.log")
     assert (faulty / "loop_closures.csv").read_text() == (reference / "loop_closures.csv").read_text()
     assert metrics["stages"]["map"]["frames"] == FRAMES and metrics["stages"]["map"]["missing_frames"] == 0
+
+
+def test_service_killed_during_start_up_is_restarted(tmp_path):
+    """A service killed by a signal before its health token appeared is restarted like one killed
+    mid-run (issue 12); only an exit with an error of its own at start-up fails the run."""
+    port = free_port()
+    args = [arg if arg != str(FRAMES) else "20" for arg in run_args(tmp_path, port)]
+    run = subprocess.Popen(args, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while (pid := service_pid(port, "gridcells")) is None and run.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pid is not None, "gridcells never started"
+        os.kill(pid, signal.SIGKILL)   # at once: it is still importing, long before its health token
+        out, err = run.communicate(timeout=300)
+    finally:
+        if run.poll() is None:
+            run.kill()
+    assert run.returncode == 0, err
+    assert "gridcells exited with code -9; restart 1" in err
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["services"]["gridcells"]["restarts"] == 1 and metrics["stages"]["map"]["frames"] == 20

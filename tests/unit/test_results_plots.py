@@ -4,6 +4,7 @@ import dataclasses
 import json
 import math
 import os
+import sys
 
 import cv2
 import numpy as np
@@ -143,3 +144,20 @@ def test_plot_series_and_heatmaps(tmp_path):
     assert heat.shape[1] > heat.shape[0]
     with pytest.raises(PlotError, match="2-D"):
         plot_heatmaps(tmp_path / "h2.png", {"bad": np.zeros(4)})
+
+
+def test_without_matplotlib_plots_are_skipped_with_one_warning(tmp_path, monkeypatch, caplog):
+    """matplotlib is the optional extra `plots` (not in the container image): without it every
+    plot function writes nothing and returns None, and the process says so once."""
+    from services.evaluation import plots
+
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)   # `import` of it raises ImportError
+    monkeypatch.setattr(plots, "_missing_said", False)
+    truth = integrate_increments(np.ones(5), np.zeros(5), np.zeros(5))
+    with caplog.at_level("WARNING", logger=plots.__name__):
+        assert plot_trajectories(tmp_path / "t.png", {"groundtruth": truth}) is None
+        assert plot_series(tmp_path / "s.png", {"x": ([0, 1], [0, 1])}, "frame", "m") is None
+        assert plot_heatmaps(tmp_path / "h.png", {"a": np.zeros((4, 4))}) is None
+    assert not list(tmp_path.iterdir())
+    assert [r.getMessage() for r in caplog.records] == [
+        "matplotlib is not installed: no PNG plots are written (pip install 'gridslam[plots]')"]
