@@ -8,7 +8,9 @@ import dataclasses
 import json
 import logging
 import math
+import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -503,12 +505,17 @@ def test_a_snapshot_taken_while_frames_are_applied_is_the_map_of_one_frame(tmp_p
             snapshots.append(expmap.snapshot())
 
     thread = threading.Thread(target=query)
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-5)   # the threads take turns often: snapshots land in the middle of frames
     thread.start()
     try:
-        deliver(expmap, inputs)
+        for message in inputs:
+            deliver(expmap, [message])
+            time.sleep(1e-4)
     finally:
         done.set()
         thread.join()
+        sys.setswitchinterval(interval)
     taken = {m.header.seq: m for m in snapshots if expmap.map.last_frame is not None and m.experiences}
     assert len(taken) >= 5, "too few snapshots during the run to judge"
     # Each snapshot is exactly the map the first frames up to its header's seq make.
