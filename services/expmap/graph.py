@@ -211,6 +211,7 @@ class ExperienceMap:
         self.frames: list[tuple[int, int, tuple[float, float, float]]] = []   # (frame, experience, offset)
         self.last_frame: int | None = None
         self.closures = {"accepted": 0, "rejected": 0, "unmeasured": 0, "unmatched": 0}
+        self.decisions: list[tuple[int, int, str]] = []   # (frame, matched frame, what became of its closure)
         self._frame_at: dict[int, int] = {}             # frame → its row of `frames`
         self._by_template: dict[int, int] = {}          # template → its latest experience
         from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
@@ -264,6 +265,7 @@ class ExperienceMap:
                              covariance, result)
         if result.closure is not None:
             self.closures[result.closure] += 1
+            self.decisions.append((frame, closure.matched_frame, result.closure))
         moved = self.optimizer.solve(closure_frame=result.closure in ("accepted", "rejected"))
         result.moved = [i for i in moved if i not in result.new_experiences]
         result.experience = self.current

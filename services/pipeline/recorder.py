@@ -31,7 +31,8 @@ class Recording:
     increments: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     grid_poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     map_poses: dict[int, tuple[float, float, float, int]] = field(default_factory=dict)
-    final_map: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # frames on the final relaxed map
+    final_map: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # frames on the final map
+    map_decisions: list[tuple[int, int, str]] = field(default_factory=list)   # the final map's closures: frame, matched, fate
     templates: dict[int, tuple[int, bool]] = field(default_factory=dict)
     closures: list[tuple[int, int, int, int]] = field(default_factory=list)
     lattices: dict[int, np.ndarray] = field(default_factory=dict)

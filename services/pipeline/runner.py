@@ -312,9 +312,11 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         supervisor.stop(["router"])
     if (folder / MAP_LOG).exists():
         map_log = read_log(folder / MAP_LOG)
-        final = corrected_trajectory(map_log.rebuild(), map_log.steps)
+        experience_map = map_log.rebuild()
+        final = corrected_trajectory(experience_map, map_log.steps)
         x, y, heading = final.planar()
         recording.final_map = {step.frame: (x[i], y[i], heading[i]) for i, step in enumerate(map_log.steps)}
+        recording.map_decisions = experience_map.decisions
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
     result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
     write_report(folder, recording, result, trajs)
