@@ -3,21 +3,22 @@
 - `PoseGraph` (`optimizer = "gtsam"`): the map as a pose graph solved incrementally by gtsam's
   iSAM2 (Kaess et al., IJRR 2012), QR factorisation (stable on long chains where the default
   Cholesky failed in a trial). Odometric links are Gaussian factors with the covariance of the
-  odometry they span. A closure is tested against the graph: it is added, the graph solved,
-  and the rise of the graph's χ² (twice gtsam's error) it caused is its innovation squared —
-  for a linear problem exactly the Mahalanobis norm of the difference between the relative
-  pose it measures and the one the map predicted, weighed by the closure's covariance and the
-  map's own uncertainty between its two experiences — computed without the joint marginal
-  covariance, which costs a pass down the Bayes tree. Within `closure_gate` standard deviations
-  it is accepted and kept under a robust kernel (Cauchy by default, `kernel_width` standard
-  deviations wide), so that a closure that later proves wrong pulls little; beyond, the odometry
-  contradicts it: it is removed and the graph settles back, so a refused closure does not bend
-  the map.
+  odometry they span. A closure is tested against the graph: it is added as a Gaussian factor
+  and the graph solved; the rise of the graph's χ² it caused is its test statistic — for a
+  linear problem exactly the innovation's Mahalanobis norm νᵀS⁻¹ν, the difference between the
+  relative pose the closure measures and the one the map predicted, weighed by the closure's
+  covariance and the map's own uncertainty between its two experiences (S). It is computed from
+  the two experiences alone: with r the closure's residual after solving, S⁻¹ν = Σ⁻¹r, so
+  νᵀS⁻¹ν = νᵀΣ⁻¹r — no marginal covariance (a pass down the Bayes tree), no error of the whole
+  graph. Within `closure_gate` standard deviations the closure is accepted and kept under a
+  robust kernel (Cauchy by default, `kernel_width` standard deviations wide), so that a closure
+  that later proves wrong pulls little; beyond, the odometry contradicts it: it is removed and
+  the graph settles back, so a refused closure does not bend the map.
   The graph is solved only on frames with a closure: between closures the map is a chain, and
   a new experience's estimate is its predecessor's composed with the odometry, exactly what the
   solver would give, so such frames cost nothing that grows with the map. (An iSAM2 update
-  costs time proportional to the map in gtsam 4.3: its Bayes-tree destructor visits every
-  clique below the part it re-eliminates — measured in docs/mapping.md.)
+  costs some time proportional to the map in gtsam 4.3 — its Bayes-tree destructor visits every
+  clique below the part it re-eliminates: microseconds per thousand experiences, docs/mapping.md.)
 - `Relaxation` (`optimizer = "ratslam"`): RatSLAM's graph relaxation. Every link pulls both of
   its ends toward agreement with its transform by `correction` (0.5, as in RatSLAM) of the
   disagreement; headings the same way. All links act at once and a node's pulls are averaged
@@ -51,7 +52,6 @@ class PoseGraph:
         params.relinearizeSkip = 1
         params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
         params.enablePartialRelinearizationCheck = True
-        params.evaluateNonlinearError = True   # the closure test reads the graph's error
         self.isam = gtsam.ISAM2(params)
         self._factors = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
@@ -74,26 +74,39 @@ class PoseGraph:
         self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
 
     def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, float]:
-        """Test a closure against the graph and keep it when it passes; (accepted, innovation in std devs)."""
-        before = self._update()   # the experiences and links so far are in the solver
+        """Test a closure against the graph and keep it when it passes; (accepted, test statistic
+        in standard deviations)."""
+        information = np.linalg.inv(covariance)
+        innovation = self._residual(link, self._pose(link.source), self.isam.calculateEstimatePose2(link.target)
+                                    if link.target < self._solved else self._pose(link.target))
         self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
-        after = self._update()
-        index = after.getNewFactorsIndices()[-1]
-        for _ in range(self.map.params.closure_iterations):
-            after = self._update()
-        innovation = float(np.sqrt(max(2.0 * (after.getErrorAfter() - before.getErrorAfter()), 0.0)))
-        accepted = innovation <= self.map.params.closure_gate
+        index = self._solve().getNewFactorsIndices()[-1]
+        residual = self._residual(link, *(self.isam.calculateEstimatePose2(key) for key in (link.source, link.target)))
+        statistic = float(np.sqrt(max(float(innovation @ information @ residual), 0.0)))
+        accepted = statistic <= self.map.params.closure_gate
         if accepted and self._kernel is not None:   # kept under the robust kernel
             self._factors.add(self._factor(link, self.gtsam.noiseModel.Robust.Create(
                 self._kernel, self.gtsam.noiseModel.Gaussian.Covariance(covariance))))
-        if accepted:
-            if self._kernel is not None:
-                self._update(remove=[index])
-        else:   # refused: out of the graph, and the estimate settles back without it
             self._update(remove=[index])
-            for _ in range(self.map.params.closure_iterations):
-                self._update()
-        return accepted, innovation
+        elif not accepted:   # refused: out of the graph, and the estimate settles back without it
+            self._solve(remove=[index])
+        return accepted, statistic
+
+    def _solve(self, remove: list[int] | None = None):
+        """An update, then more (up to closure_iterations) while they still relinearize something."""
+        first = result = self._update(remove)
+        for _ in range(self.map.params.closure_iterations):
+            if not result.getVariablesRelinearized():
+                break
+            result = self._update()
+        return first
+
+    def _pose(self, key: int):
+        return self.gtsam.Pose2(*self.map.poses[key])
+
+    def _residual(self, link: Link, source, target) -> np.ndarray:
+        """The link's error Log(measured⁻¹ ∘ predicted) for these two poses (the factor's own)."""
+        return self.gtsam.Pose2.Logmap(self.gtsam.Pose2(*link.transform).between(source.between(target)))
 
     def _factor(self, link: Link, noise):
         return self.gtsam.BetweenFactorPose2(link.source, link.target, self.gtsam.Pose2(*link.transform), noise)
@@ -114,7 +127,8 @@ class PoseGraph:
         count = self._solved
         window = range(self._cursor, self._cursor + min(REFRESH_PER_SOLVE, count))
         self._cursor = (self._cursor + REFRESH_PER_SOLVE) % count
-        keys = sorted(self._refresh.union(i % count for i in window))
+        # The current experience too: the experiences made until the next solve are composed from it.
+        keys = sorted(self._refresh.union(i % count for i in window).union([self.map.current]) & set(range(count)))
         self._refresh.clear()
         poses, moved = self.map._poses, []
         for key in keys:

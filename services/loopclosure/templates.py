@@ -7,7 +7,8 @@ shift gives the rotation between the views. When no stored template is within
 `match_threshold`, the view becomes a new template.
 
 Matching costs the same at 1k or 100k templates: the candidates come from an approximate
-nearest-neighbour index (faiss's HNSW graph) and only they are compared patch to patch, exactly.
+nearest-neighbour index (hnswlib's HNSW graph, Malkov & Yashunin 2018) and only they are
+compared patch to patch, exactly.
 The index holds a compact descriptor of every stored template: its rows averaged into
 `index_rows` bands, of its central columns (those that overlap the current view at every shift,
 `shift_range` to `width − shift_range`). A frame asks the index once per shift s with its own
@@ -25,18 +26,20 @@ import math
 from dataclasses import dataclass
 
 import cv2
-import faiss
+import hnswlib
 import numpy as np
 
 from services.common.errors import ConfigError, DataError
 
 
 MATCHERS = ("index", "exhaustive")
-# HNSW graph: links per node, and the breadth of construction and search (faiss's defaults are
-# 32/40/16; a wider search finds the nearest templates more surely for a few µs more).
+# HNSW graph: links per node, and the breadth of construction and search (a wider search finds
+# the nearest templates more surely for a few µs more); a fixed seed: the same templates give
+# the same graph.
 HNSW_LINKS = 16
 HNSW_BUILD = 40
 HNSW_SEARCH = 64
+HNSW_SEED = 100
 
 
 class TemplateError(DataError):
@@ -92,11 +95,12 @@ class ViewTemplates:
         self.radians_per_column = math.radians(params.fov_deg) * crop_fraction / params.width
         self._index = None
         if params.matcher == "index":
+            self._index = hnswlib.Index(space="l2", dim=params.index_rows * (params.width - 2 * params.shift_range))
+            self._index.init_index(max_elements=len(self._patches), ef_construction=HNSW_BUILD, M=HNSW_LINKS,
+                                   random_seed=HNSW_SEED)
             # One thread: the services share the cores, and a single-threaded build is deterministic.
-            faiss.omp_set_num_threads(1)
-            self._index = faiss.IndexHNSWFlat(params.index_rows * (params.width - 2 * params.shift_range), HNSW_LINKS)
-            self._index.hnsw.efConstruction = HNSW_BUILD
-            self._index.hnsw.efSearch = HNSW_SEARCH
+            self._index.set_num_threads(1)
+            self._index.set_ef(HNSW_SEARCH)
         # Row bands of the descriptor: band b averages rows band_edges[b]..band_edges[b + 1].
         self._band_edges = np.linspace(0, params.height, params.index_rows + 1).round().astype(int)
 
@@ -151,8 +155,8 @@ class ViewTemplates:
         r, width = self.params.shift_range, self.params.width
         bands = self._bands(patch)
         queries = np.stack([bands[:, r + s:width - r + s].ravel() for s in range(-r, r + 1)])
-        _, ids = self._index.search(queries, self.params.candidates)
-        return np.unique(ids[ids >= 0])
+        ids, _ = self._index.knn_query(queries, k=self.params.candidates)
+        return np.unique(ids).astype(np.int64)
 
     def _bands(self, patch: np.ndarray) -> np.ndarray:
         """The patch's rows averaged into the descriptor's bands, (index_rows, width)."""
@@ -178,10 +182,12 @@ class ViewTemplates:
         count = len(self.frames)
         if count == self._patches.shape[0]:   # grow geometrically: amortised O(1) per template
             self._patches = np.concatenate([self._patches, np.empty_like(self._patches)])
+            if self._index is not None:
+                self._index.resize_index(len(self._patches))
         self._patches[count] = patch
         if self._index is not None:
             r = self.params.shift_range
             descriptor = self._bands(self._patches[count])[:, r:self.params.width - r]
-            self._index.add(np.ascontiguousarray(descriptor, dtype=np.float32).reshape(1, -1))
+            self._index.add_items(np.ascontiguousarray(descriptor, dtype=np.float32).reshape(1, -1), [count])
         self.frames.append(frame)
         return count
