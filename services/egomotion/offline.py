@@ -148,11 +148,19 @@ def run_offline(
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
 
-    if preset is not None and preset not in preset_names() and preset not in source_spec.preset_names():
+    from services.common.config import is_preset_file, preset_applies
+
+    if preset is not None and is_preset_file(preset):
+        estimator_preset = preset if preset_applies("egomotion", preset) else None
+        source_preset = preset if preset_applies("source", preset) else None
+    elif preset is not None and preset not in preset_names() and preset not in source_spec.preset_names():
         raise EstimatorConfigError(
             f"unknown preset {preset!r} (available: {', '.join(sorted(set(preset_names()) | set(source_spec.preset_names())))})"
         )
-    default, all_params = load_estimator_config(preset if preset in preset_names() else None, config_file)
+    else:
+        estimator_preset = preset if preset in preset_names() else None
+        source_preset = preset if preset in source_spec.preset_names() else None
+    default, all_params = load_estimator_config(estimator_preset, config_file)
     name = estimator or default
     if name is None:
         raise EstimatorConfigError(f"no estimator given: use --estimator ({', '.join(ESTIMATORS)}) or a preset that names one")
@@ -167,7 +175,7 @@ def run_offline(
         start=start,
         stop=stop,
         step=step,
-        preset=preset if preset in source_spec.preset_names() else None,
+        preset=source_preset,
         calibration=calibration,
         mono=name != "stereo",
     )

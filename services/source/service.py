@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import logging
 import time
 from pathlib import Path
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from schemas import CameraFrame, CameraInfo, PlanarIncrement
 from schemas.base import Message
@@ -25,7 +27,8 @@ from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.topics import TOPICS
 from services.source.frames import Frame, FrameSource
-from services.source.spec import open_source
+from services.source.spec import add_world_arguments, open_source, parse_world_flags, world_keys
+from services.source.synthetic import WorldConfig
 
 log = logging.getLogger(__name__)
 
@@ -36,13 +39,15 @@ WAIT_LOG_PERIOD_S = 10.0   # how often a source stalled on its window says so
 RECONNECT_SETTLE_S = 0.5
 
 
-class SourceConfig(BaseModel):
-    """Configuration of the source service (table `[source]`, env `GRIDSLAM_SOURCE_*`)."""
+class _SourceSettings(BaseModel):
+    """Configuration of the source service (table `[source]`, env `GRIDSLAM_SOURCE_*`); the
+    synthetic world's settings (`laps`, `speed`, ... : spec.world_keys()) are keys of it too."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     source: str = Field(description="What to read: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
-    preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic.")
+    preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic, campus, "
+                                                  "or a preset file (docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
     mono: bool = Field(False, description="Publish only the left image of a stereo source.")
     start: int = Field(0, ge=0, description="First frame index.")
@@ -62,6 +67,20 @@ class SourceConfig(BaseModel):
                                "(a service restarted downstream lost them; services that already handled a frame "
                                "replay their outputs instead of computing them again).")
     exit_at_end: bool = Field(True, description="Exit once the last frame is acknowledged (or sent, without flow control).")
+
+    def world(self) -> dict[str, Any]:
+        """The synthetic world settings given here (they override the preset's)."""
+        return {key: getattr(self, key) for key in world_keys() if getattr(self, key) is not None}
+
+
+def _world_fields() -> dict[str, Any]:
+    defaults = {field.name: field.default for field in dataclasses.fields(WorldConfig)}
+    return {key: (kind | None, Field(None, description=f"Synthetic world: {key} (default {defaults[key]!r}); "
+                                                        f"overrides the preset's (docs/sources.md)."))
+            for key, kind in world_keys().items()}
+
+
+SourceConfig = create_model("SourceConfig", __base__=_SourceSettings, __doc__=_SourceSettings.__doc__, **_world_fields())
 
 
 def frame_message(frame: Frame, header) -> CameraFrame:
@@ -210,7 +229,7 @@ class SourceService(Service):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
-    parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic")
+    parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, or a preset file")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file")
     parser.add_argument("--mono", action="store_true", default=None, help="publish only the left image")
     parser.add_argument("--start", type=int, help="first frame index")
@@ -222,13 +241,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live-window", type=int, help="frames in flight from a live camera (default 2; 0: no flow control)")
     parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
     parser.add_argument("--resend-after", type=float, help="seconds without acknowledgement before resending (default 5)")
+    add_world_arguments(parser)
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
               "resend_after")
     config = load_config(SourceConfig, "source", config_file=args.config,
-                         overrides={name: getattr(args, name) for name in fields})
+                         overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
-                         calibration=config.calibration, mono=config.mono, origin=config.origin)
+                         calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world())
     return SourceService(runtime, config, frames, args.instance).run()
