@@ -6,9 +6,9 @@ rectangle beside it (B), an L-shaped loop below them (C) and a long thin loop wi
 end (D, 36 m long, 12 m across, a half circle of 6 m radius), joined at T junctions and one
 X crossing. The route is a closed tour of about 2.2 km through it: every loop is driven
 several times, in both directions, so most stretches are revisited in the same direction and
-many in the opposite one. Two pairs of straight stretches (18 m and 15 m) are look-alikes:
+many in the opposite one. Two pairs of straight stretches (20 m and 17 m) are look-alikes:
 walls, pillars, floor, ceiling and lamps of one are a translated copy of the other's
-(``TWINS``), 69 m and 37 m apart.
+(``twins``), 69 m and 37 m apart.
 
 The geometry is fixed; the seed draws the textures, the pillars, the lamps' schedules, the
 noise and the sway. Everything is in metres, x east, y north; the corridor width is the
@@ -73,26 +73,29 @@ class Twin:
 
 
 def twins(corridor_width: float) -> tuple[Twin, ...]:
-    """The two look-alike pairs: 18 m of the d–e corridor copied onto q–r, 15 m of b–e onto a–g."""
+    """The two look-alike pairs: 20 m of the d–e corridor copied onto q–r, 17 m of b–e onto a–g."""
     across = corridor_width / 2 + 0.5  # the walls and the pillars against them
     return (
-        Twin((5.0, 23.0, 24.0 - across, 24.0 + across), (68.0, -12.0)),
-        Twin((28.0 - across, 28.0 + across, 4.5, 19.5), (-28.0, -24.0)),
+        Twin((4.0, 24.0, 24.0 - across, 24.0 + across), (68.0, -12.0)),
+        Twin((28.0 - across, 28.0 + across, 3.5, 20.5), (-28.0, -24.0)),
     )
 
 
 RASTER = 0.02  # metres per pixel of the free-space raster the walls are traced from
+CURVE_TOLERANCE = 2.0  # pixels: a curved wall's segments stay this close to its traced (4-connected) stairs
 
 
 @dataclass(frozen=True)
 class Layout:
     """What the world needs of a layout. Segments are (x0, y0, dx, dy); ``texture_of[k]`` is
     the segment whose texture segment k shows (k itself, or its twin's original);
+    ``texture_shift[k]`` where along that segment (metres) segment k's texture starts;
     ``lamp_schedule_of`` likewise for the lamps' on/off schedules."""
 
     route: Route
     segments: np.ndarray
     texture_of: np.ndarray
+    texture_shift: np.ndarray
     lamps: np.ndarray
     lamp_headings: np.ndarray
     lamp_schedule_of: np.ndarray
@@ -258,12 +261,15 @@ def _pillars(rng: np.random.Generator, corridor_width: float, spacing: float, pa
                 pillars.append(tuple(RASTER * round(v / RASTER) for v in (cx - size / 2, cx + size / 2, cy - size / 2, cy + size / 2)))
                 position += rng.uniform(0.6, 1.4) * spacing
 
-    def overlaps(pillar, region) -> bool:
-        return pillar[0] < region[1] and pillar[1] > region[0] and pillar[2] < region[3] and pillar[3] > region[2]
+    def overlaps(pillar, region, margin=0.1) -> bool:  # or comes within `margin` of it
+        return (pillar[0] < region[1] + margin and pillar[1] > region[0] - margin
+                and pillar[2] < region[3] + margin and pillar[3] > region[2] - margin)
 
-    def inside(pillar, region) -> bool:
-        return pillar[0] >= region[0] and pillar[1] <= region[1] and pillar[2] >= region[2] and pillar[3] <= region[3]
+    def inside(pillar, region, margin=0.1) -> bool:  # and `margin` away from its sides
+        return (pillar[0] >= region[0] + margin and pillar[1] <= region[1] - margin
+                and pillar[2] >= region[2] + margin and pillar[3] <= region[3] - margin)
 
+    # A copy's own pillars go; so does any pillar on or near the side of a twin's region.
     kept = [p for p in pillars if not any(overlaps(p, t.moved()) or (overlaps(p, t.region) and not inside(p, t.region)) for t in pairs)]
     for twin in pairs:
         dx, dy = twin.offset
@@ -271,14 +277,45 @@ def _pillars(rng: np.random.Generator, corridor_width: float, spacing: float, pa
     return kept
 
 
+def _outline(contour: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """Vertices (pixels) of one traced boundary: the 8-connected trace made 4-connected (a
+    diagonal step goes through the free one of its two corner pixels, so a corner is a corner
+    whichever way the tracer cut it) and straight runs merged. Corners between two edges of 4
+    pixels or more (walls, pillars, junctions) are kept exactly; the stairs of a curved wall
+    between such corners are simplified to within CURVE_TOLERANCE pixels."""
+    points = contour[:, 0]
+    following = np.roll(points, -1, axis=0)
+    diagonal = np.all(np.abs(following - points) == 1, axis=1)
+    first_corner = np.c_[points[:, 0], following[:, 1]]
+    corner = np.where((free[first_corner[:, 1], first_corner[:, 0]] > 0)[:, None], first_corner, np.c_[following[:, 0], points[:, 1]])
+    path = np.empty((len(points) + int(diagonal.sum()), 2), int)
+    index = np.arange(len(points)) + np.concatenate([[0], np.cumsum(diagonal)[:-1]])
+    path[index] = points
+    path[index[diagonal] + 1] = corner[diagonal]
+    step = np.roll(path, -1, axis=0) - path
+    vertices = path[np.any(step != np.roll(step, 1, axis=0), axis=1)]
+    edges = np.hypot(*(np.roll(vertices, -1, axis=0) - vertices).T)
+    anchors = np.flatnonzero((edges >= 4) & (np.roll(edges, 1) >= 4))  # vertex k: edges k - 1 and k are long
+    if len(anchors) == len(vertices):
+        return vertices
+    if not len(anchors):
+        return cv2.approxPolyDP(vertices.reshape(-1, 1, 2).astype(np.int32), CURVE_TOLERANCE, True)[:, 0]
+    kept = []
+    for a, b in zip(anchors, np.r_[anchors[1:], anchors[0] + len(vertices)]):
+        chain = vertices[np.arange(a, b + 1) % len(vertices)]
+        if b - a > 1 and edges[np.arange(a, b) % len(vertices)].min() < 4:
+            chain = cv2.approxPolyDP(chain.reshape(-1, 1, 2).astype(np.int32), CURVE_TOLERANCE, False)[:, 0]
+        kept += list(chain[:-1])
+    return np.array(kept)
+
+
 def _trace_walls(free: np.ndarray, origin: tuple[float, float]) -> np.ndarray:
     """Wall segments (x0, y0, dx, dy) along the boundary of the free space, each directed
     with the free space on its left (so a wall's texture reads the same way wherever it is)."""
-    contours, _ = cv2.findContours(free, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    contours, _ = cv2.findContours(free, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     segments = []
     for contour in contours:
-        points = cv2.approxPolyDP(contour, 1.0, True)[:, 0].astype(np.float64)
-        points = np.asarray(origin) + points * RASTER
+        points = np.asarray(origin) + _outline(contour, free).astype(np.float64) * RASTER
         for p, q in zip(points, np.roll(points, -1, axis=0)):
             segments.append((p[0], p[1], q[0] - p[0], q[1] - p[1]))
     segments = np.array(segments)
@@ -314,21 +351,37 @@ def _within(points: np.ndarray, region: tuple[float, float, float, float]) -> np
     return (points[:, 0] >= x0) & (points[:, 0] <= x1) & (points[:, 1] >= y0) & (points[:, 1] <= y1)
 
 
-def _twin_textures(segments: np.ndarray, pairs: tuple[Twin, ...]) -> np.ndarray:
-    """For every segment, the segment whose texture it shows: inside a twin's copy, the
-    original's segment at the same relative place."""
-    texture_of = np.arange(len(segments))
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z of the cross product of 2-D vectors (rows)."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _twin_textures(segments: np.ndarray, pairs: tuple[Twin, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """For every segment, the segment whose texture it shows and where along that one (metres)
+    it starts: inside a twin's copy, the original's wall at the same relative place. (The
+    traced copies can differ from their originals by a pixel at corners, where the tracing cuts
+    a corner diagonally one way or the other; a piece without a counterpart keeps its own texture.)"""
+    texture_of, shift = np.arange(len(segments)), np.zeros(len(segments))
     middles = segments[:, :2] + segments[:, 2:] / 2
+    tolerance = 2.5 * RASTER
     for twin in pairs:
         originals = np.flatnonzero(_within(middles, twin.region))
-        keys = {tuple(np.round(segments[k] / RASTER).astype(int)): k for k in originals}
+        starts, directions = segments[originals, :2], segments[originals, 2:]
+        lengths2 = (directions**2).sum(axis=1)
         for k in np.flatnonzero(_within(middles, twin.moved())):
-            moved = segments[k] - np.array([*twin.offset, 0.0, 0.0])
-            key = tuple(np.round(moved / RASTER).astype(int))
-            if key not in keys:
-                raise AssertionError(f"campus: wall at ({segments[k, 0]:.2f}, {segments[k, 1]:.2f}) has no twin")
-            texture_of[k] = keys[key]
-    return texture_of
+            start, direction = segments[k, :2] - np.asarray(twin.offset), segments[k, 2:]
+            end = start + direction
+            t0 = ((start - starts) * directions).sum(axis=1) / lengths2
+            t1 = ((end - starts) * directions).sum(axis=1) / lengths2
+            off_line = np.abs(_cross(directions, start - starts)) / np.sqrt(lengths2)
+            parallel = np.abs(_cross(directions, direction)) < 1e-9 * np.sqrt(lengths2) * np.hypot(*direction) + 1e-12
+            slack = tolerance / np.sqrt(lengths2)
+            inside = parallel & (off_line < tolerance) & (t0 >= -slack) & (t1 <= 1 + slack) & (t1 > t0)
+            if inside.any():
+                j = int(np.flatnonzero(inside)[0])
+                texture_of[k] = originals[j]
+                shift[k] = t0[j] * math.sqrt(lengths2[j])
+    return texture_of, shift
 
 
 def _lamps(pairs: tuple[Twin, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -367,7 +420,8 @@ def campus_layout(corridor_width: float, pillar_spacing: float, rng: np.random.G
     segments = _trace_walls(free, origin)
     segments = _split_at(segments, [region for twin in pairs for region in (twin.region, twin.moved())])
     lamps, headings, schedule_of = _lamps(pairs)
+    texture_of, texture_shift = _twin_textures(segments, pairs)
     return Layout(
-        route=build_route(corridor_width), segments=segments, texture_of=_twin_textures(segments, pairs), lamps=lamps,
-        lamp_headings=headings, lamp_schedule_of=schedule_of, twins=pairs, free=free, origin=origin,
+        route=build_route(corridor_width), segments=segments, texture_of=texture_of, texture_shift=texture_shift,
+        lamps=lamps, lamp_headings=headings, lamp_schedule_of=schedule_of, twins=pairs, free=free, origin=origin,
     )

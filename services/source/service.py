@@ -244,11 +244,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_world_arguments(parser)
 
 
-def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
+def config_from_args(args: argparse.Namespace) -> SourceConfig:
+    """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
+    (world settings from --laps and --world KEY=VALUE)."""
     fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
               "resend_after")
-    config = load_config(SourceConfig, "source", config_file=args.config,
-                         overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
+    return load_config(SourceConfig, "source", config_file=args.config,
+                       overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
+
+
+def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
+    config = config_from_args(args)
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
                          calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world())
     return SourceService(runtime, config, frames, args.instance).run()

@@ -406,7 +406,8 @@ class SyntheticWorld(IndexedSource):
         texels = np.where(owned, np.ceil(lengths * self._wall_res).astype(int) + PAD, 0)
         self._segment_length = lengths
         self._texture_of = layout.texture_of
-        self._segment_offset = np.concatenate([[0], np.cumsum(texels)[:-1]]).astype(np.float64)[layout.texture_of]
+        own_offset = np.concatenate([[0], np.cumsum(texels)[:-1]]).astype(np.float64)
+        self._segment_offset = own_offset[layout.texture_of] + layout.texture_shift * self._wall_res
         self._strip_length = int(texels.sum())
         self.lamps = layout.lamps
         self._lamp_headings = layout.lamp_headings
