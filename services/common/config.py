@@ -127,13 +127,16 @@ def describe_preset(preset: str | Path, services: list[str]) -> str:
     from_file = [s for s in services if s in tables]
     on_base = [s for s in services if s not in tables and base is not None and has_named_preset(s, base)]
     default = [s for s in services if s not in from_file and s not in on_base]
+    def say(names: list[str], one: str, many: str) -> str:
+        return f"{', '.join(names)} {one if len(names) == 1 else many}"
+
     parts = []
     if from_file:
-        parts.append(f"{', '.join(from_file)} take keys from it" + (f" (over preset {base!r})" if base else ""))
+        parts.append(say(from_file, "takes", "take") + " keys from it" + (f" (over preset {base!r})" if base else ""))
     if on_base:
-        parts.append(f"{', '.join(on_base)} stay on preset {base!r}")
+        parts.append(say(on_base, "stays", "stay") + f" on preset {base!r}")
     if default:
-        parts.append(f"{', '.join(default)} run on their defaults (" + ("no base" if base is None else f"{base!r} has none for them") + ")")
+        parts.append(say(default, "runs", "run") + " on defaults (" + ("no base" if base is None else f"{base!r} has no preset for it") + ")")
     return f"preset file {preset}: " + "; ".join(parts)
 
 

@@ -140,10 +140,12 @@ def run_offline(
     reference: str | Path | None = None,
     out: Path | None = None,
     results_root: Path = Path("results"),
+    world: dict | None = None,
 ) -> tuple[OdometryResult, Path]:
     """Open the source ``spec``, build the estimator from the preset and config file, run
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
-    ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs."""
+    ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs.
+    ``world``: synthetic world settings over the preset's."""
     from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator, preset_names
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
@@ -178,6 +180,7 @@ def run_offline(
         preset=source_preset,
         calibration=calibration,
         mono=name != "stereo",
+        world=world,
     )
     estimator_instance = make_estimator(name, getattr(source, "camera", None), all_params[name])
     reference_trajectory = load_reference(reference) if reference is not None else None
@@ -191,6 +194,7 @@ def run_offline(
         "stop": stop,
         "step": step,
         "reference": None if reference is None else str(reference),
+        "world": world or {},
         "camera": None if getattr(source, "camera", None) is None else dataclasses.asdict(source.camera),
         "estimator": estimator_config(estimator_instance),
     }

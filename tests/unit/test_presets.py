@@ -105,8 +105,8 @@ def test_a_preset_file_without_base_says_which_services_run_on_defaults(tmp_path
     with caplog.at_level(logging.INFO, logger="services.pipeline.runner"):
         log_preset(config, ["source", "egomotion", "loopclosure"])
     assert [r.levelname for r in caplog.records] == ["WARNING"]
-    assert caplog.records[0].getMessage() == (f"preset file {path}: source take keys from it; "
-                                              "egomotion, loopclosure run on their defaults (no base)")
+    assert caplog.records[0].getMessage() == (f"preset file {path}: source takes keys from it; "
+                                              "egomotion, loopclosure run on defaults (no base)")
 
 
 def test_bad_preset_files_are_one_line_naming_file_and_key(tmp_path):
