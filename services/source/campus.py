@@ -12,13 +12,14 @@ walls, pillars, floor, ceiling and lamps of one are a translated copy of the oth
 
 The geometry is fixed; the seed draws the textures, the pillars, the lamps' schedules, the
 noise and the sway. Everything is in metres, x east, y north; the corridor width is the
-world's ``corridor_width``. Walls come from a raster of the free space (corridors as thick
-lines with square ends at corners and junctions, the curved end as an annulus sector, pillars
-cut out) traced by ``cv2.findContours`` and simplified to segments; the route turns at every
-corner with a radius of half the corridor width, as the corridor world does.
+world's ``corridor_width``. Walls come from a 2 cm raster of the free space (corridors as
+rectangles with square ends at corners and junctions, the curved end as an annulus sector,
+pillars cut out), traced by ``cv2.findContours``: straight walls and corners exactly, curved
+walls as chords within two pixels. The route turns at every corner with a radius of half the
+corridor width, as the corridor world does.
 
-Pure geometry (numpy and OpenCV): ``campus_layout(config, rng)`` returns a ``Layout`` the
-world renders (services/source/synthetic.py).
+Pure geometry (numpy and OpenCV): ``campus_layout(corridor_width, pillar_spacing, rng)``
+returns a ``Layout`` the world renders (services/source/synthetic.py).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.source.synthetic import LAMP_SPACING, PILLAR_SIZE, Route
+from services.source.synthetic import LAMP_SPACING, PILLAR_SIZE, Route, in_region
 
 # Junctions and corners (x, y); the loops: A = a b e d, B = b c r f e, C = a g h i j b,
 # D = c p q r (p→q is the curved end).
@@ -346,11 +347,6 @@ def _split_at(segments: np.ndarray, regions: list[tuple[float, float, float, flo
     return segments
 
 
-def _within(points: np.ndarray, region: tuple[float, float, float, float]) -> np.ndarray:
-    x0, x1, y0, y1 = region
-    return (points[:, 0] >= x0) & (points[:, 0] <= x1) & (points[:, 1] >= y0) & (points[:, 1] <= y1)
-
-
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """z of the cross product of 2-D vectors (rows)."""
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
@@ -358,17 +354,18 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _twin_textures(segments: np.ndarray, pairs: tuple[Twin, ...]) -> tuple[np.ndarray, np.ndarray]:
     """For every segment, the segment whose texture it shows and where along that one (metres)
-    it starts: inside a twin's copy, the original's wall at the same relative place. (The
-    traced copies can differ from their originals by a pixel at corners, where the tracing cuts
-    a corner diagonally one way or the other; a piece without a counterpart keeps its own texture.)"""
+    it starts: inside a twin's copy, the original's wall at the same relative place. (Where a
+    wall falls half-way between raster pixels, a copy's wall can lie a pixel off its
+    original's and be cut differently: a piece then shows the original's texture from where it
+    starts along it; a piece without a counterpart keeps its own texture.)"""
     texture_of, shift = np.arange(len(segments)), np.zeros(len(segments))
     middles = segments[:, :2] + segments[:, 2:] / 2
     tolerance = 2.5 * RASTER
     for twin in pairs:
-        originals = np.flatnonzero(_within(middles, twin.region))
+        originals = np.flatnonzero(in_region(middles, twin.region))
         starts, directions = segments[originals, :2], segments[originals, 2:]
         lengths2 = (directions**2).sum(axis=1)
-        for k in np.flatnonzero(_within(middles, twin.moved())):
+        for k in np.flatnonzero(in_region(middles, twin.moved())):
             start, direction = segments[k, :2] - np.asarray(twin.offset), segments[k, 2:]
             end = start + direction
             t0 = ((start - starts) * directions).sum(axis=1) / lengths2
@@ -400,11 +397,11 @@ def _lamps(pairs: tuple[Twin, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]
                 angle = math.atan2(NODES[a][1] - cy, NODES[a][0] - cx) + sense * s / radius
                 lamps.append((cx + radius * math.cos(angle), cy + radius * math.sin(angle), angle + sense * math.pi / 2))
     lamps = np.array(lamps)
-    keep = ~np.any([_within(lamps, t.moved()) for t in pairs], axis=0)
+    keep = ~np.any([in_region(lamps, t.moved()) for t in pairs], axis=0)
     kept_index = np.cumsum(keep) - 1
     parts, schedule_of = [lamps[keep]], [np.arange(int(keep.sum()))]
     for twin in pairs:
-        originals = np.flatnonzero(_within(lamps, twin.region) & keep)
+        originals = np.flatnonzero(in_region(lamps, twin.region) & keep)
         parts.append(lamps[originals] + np.array([*twin.offset, 0.0]))
         schedule_of.append(kept_index[originals])
     lamps = np.concatenate(parts)

@@ -1,13 +1,16 @@
 """A synthetic world: a procedural corridor loop rendered on the fly by a pinhole mono or
-stereo camera, with exact ground truth and exact odometry.
+stereo camera, with exact ground truth and exact odometry. (``layout = "campus"`` swaps the
+ring below for a network of corridor loops, campus.py; the renderer is the same.)
 
 The scene (docs/sources.md has the picture): a rectangular ring corridor, floor, ceiling
 and full-height walls (a 2.5-D world), with square pillars standing against the walls. Every
 wall carries its own procedural texture (panels, bricks, posters, doors, shelves, speckle),
 the floor carpet tiles and stains, the ceiling tiles and lamps; lighting from the lamps is
-baked into the textures, so a place looks the same on every lap. The camera drives the
-corridor's centre line (a rectangle with rounded corners, counter-clockwise) at a constant
-speed, swaying sideways by a smooth ``wander`` whose phase differs from lap to lap.
+baked into the textures, so a place looks the same on every lap (unless ``lamps_off`` or
+``light_variation`` make it change over time: then it is computed per pixel at render time,
+``_light``). The camera drives the corridor's centre line (a rectangle with rounded corners,
+counter-clockwise) at a constant speed (``max_turn_deg`` slows it in turns), swaying sideways
+by a smooth ``wander`` whose phase differs from lap to lap.
 
 Rendering casts one ray per image column against the wall segments (exact hit and depth),
 then maps every pixel to a texel: wall pixels by (distance along the walls, height), floor
@@ -60,10 +63,6 @@ LAYOUTS = ("corridor", "campus")
 # first, and against all only where those give no hit close enough to be sure (exact either way).
 CULL_SEGMENTS = 256
 CULL_RADIUS = 12.0
-# Floor and ceiling of a large world: tiles of this many texels holding only where corridors are,
-# each with a margin from its neighbours so that blur and bilinear sampling see no seam.
-TILE = 256
-TILE_MARGIN = 16
 # Lighting computed at render time (lamps switching, a changing level): on a grid of every
 # LIGHT_STEP-th pixel, interpolated (light varies slowly); a lamp's light fades to zero at
 # LIGHT_RADIUS metres so that only the lamps near what the camera sees count.
@@ -183,6 +182,11 @@ class Route:
             return x + d * math.cos(h), y + d * math.sin(h), h
         h1 = h + k * d
         return x + (math.sin(h1) - math.sin(h)) / k, y - (math.cos(h1) - math.cos(h)) / k, h1
+
+    def curvatures(self, s: np.ndarray) -> np.ndarray:
+        """Curvature at every arc length of ``s`` (within one lap)."""
+        piece = np.minimum(np.searchsorted(self._ends, s), len(self.pieces) - 1)
+        return np.array([k for _, k in self.pieces])[piece]
 
     def at(self, s: float) -> tuple[float, float, float, float]:
         """(x, y, heading, curvature) at arc length ``s`` (taken modulo the route length)."""
@@ -425,8 +429,7 @@ class SyntheticWorld(IndexedSource):
             self.speed = length / self.frames_per_lap
             return
         s = np.linspace(0.0, length, int(math.ceil(length / 0.01)) + 1)
-        piece = np.minimum(np.searchsorted(self.route._ends, s), len(self.route.pieces) - 1)
-        curvature = np.abs(np.array([k for _, k in self.route.pieces]))[piece]
+        curvature = np.abs(self.route.curvatures(s))
         limit2 = np.minimum(c.speed, math.radians(c.max_turn_deg) / np.maximum(curvature, 1e-12)) ** 2
         # v² may grow or shrink by 2·a per metre: v²(i) = min over j of limit²(j) + 2a·|s_i − s_j|.
         climb = 2 * (c.speed**2 / (2 * SPEED_RAMP)) * (s[1] - s[0])
@@ -468,8 +471,13 @@ class SyntheticWorld(IndexedSource):
         lap, index = divmod(seq, self.frames_per_lap)
         return lap * self.route.length + float(self._lap_distances[index])
 
+    @property
+    def poses(self) -> np.ndarray:
+        """World poses (x, y, continuous yaw) of every frame of the run, selected or not (a copy)."""
+        return self._poses.copy()
+
     def planar_pose(self, seq: int) -> tuple[float, float, float]:
-        """World pose (x, y, yaw) of frame ``seq``; yaw is continuous (it grows by 2π per lap)."""
+        """World pose (x, y, yaw) of frame ``seq``; yaw is continuous (it grows by the route's whole turns per lap)."""
         x, y, yaw = self._poses[seq]
         return float(x), float(y), float(yaw)
 
@@ -562,11 +570,11 @@ class SyntheticWorld(IndexedSource):
             cv2.rectangle(ceiling, (col - hw, row - hh), (col + hw, row + hh), 250.0, -1)
         for twin in self.layout.twins if self.layout is not None else ():  # look-alikes: the same floor and ceiling
             rx0, rx1, ry0, ry1 = twin.region
-            cols = slice(round((rx0 - origin_x) * res), round((rx1 - origin_x) * res))
-            rows_ = slice(round((ry0 - origin_y) * res), round((ry1 - origin_y) * res))
+            c0, c1 = round((rx0 - origin_x) * res), round((rx1 - origin_x) * res)
+            r0, r1 = round((ry0 - origin_y) * res), round((ry1 - origin_y) * res)
             dx, dy = round(twin.offset[0] * res), round(twin.offset[1] * res)
             for plane in (floor, ceiling):
-                plane[rows_.start + dy:rows_.stop + dy, cols.start + dx:cols.stop + dx] = plane[rows_, cols]
+                plane[r0 + dy:r1 + dy, c0 + dx:c1 + dx] = plane[r0:r1, c0:c1]
         self._plane_band = shape[0] + PAD
         bands = []
         for plane in (floor, ceiling):
@@ -766,11 +774,6 @@ class SyntheticWorld(IndexedSource):
             odometry=odometry,
         )
 
-    @property
-    def poses(self) -> np.ndarray:
-        """World poses (x, y, continuous yaw) of every frame of the run, selected or not (a copy)."""
-        return self._poses.copy()
-
 
 # ---------------------------------------------------------------------------------------
 # Revisits from the ground truth
@@ -808,15 +811,16 @@ def revisits(world: SyntheticWorld, radius: float = 1.0, separation: float = 30.
     for direction in ("same", "opposite"):
         found += _revisit_runs(poses, poses[:, :2], along, everywhere, everywhere, radius, separation, direction, False)
         for twin in world.layout.twins if world.layout is not None else ():
-            inside = _in_region(poses[:, :2], twin.region)
-            moved = _in_region(poses[:, :2], twin.moved())
+            inside = in_region(poses[:, :2], twin.region)
+            moved = in_region(poses[:, :2], twin.moved())
             mapped = poses[:, :2] - np.where(moved[:, None], np.asarray(twin.offset), 0.0)
             found += _revisit_runs(poses, mapped, along, inside, moved, radius, 0.0, direction, True)
             found += _revisit_runs(poses, mapped, along, moved, inside, radius, 0.0, direction, True)
     return sorted((r for r in found if r.length >= min_length), key=lambda r: (r.frames, r.lookalike, r.direction))
 
 
-def _in_region(points: np.ndarray, region: tuple[float, float, float, float]) -> np.ndarray:
+def in_region(points: np.ndarray, region: tuple[float, float, float, float]) -> np.ndarray:
+    """Which of the points (N×2) lie in the region (x0, x1, y0, y1), borders included."""
     x0, x1, y0, y1 = region
     return (points[:, 0] >= x0) & (points[:, 0] <= x1) & (points[:, 1] >= y0) & (points[:, 1] <= y1)
 
