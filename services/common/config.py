@@ -127,6 +127,7 @@ def describe_preset(preset: str | Path, services: list[str]) -> str:
     from_file = [s for s in services if s in tables]
     on_base = [s for s in services if s not in tables and base is not None and has_named_preset(s, base)]
     default = [s for s in services if s not in from_file and s not in on_base]
+
     def say(names: list[str], one: str, many: str) -> str:
         return f"{', '.join(names)} {one if len(names) == 1 else many}"
 

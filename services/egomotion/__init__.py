@@ -129,11 +129,11 @@ __all__ = [
     "Estimator",
     "EstimatorConfigError",
     "Increment",
+    "check_config_table",
     "increment_from_transform",
     "load_estimator_config",
     "make_estimator",
     "preset_names",
-    "check_config_table",
     "read_config_file",
     "transform_from_increment",
 ]

@@ -146,11 +146,10 @@ def run_offline(
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
     ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs.
     ``world``: synthetic world settings over the preset's."""
+    from services.common.config import is_preset_file, preset_applies
     from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator, preset_names
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
-
-    from services.common.config import is_preset_file, preset_applies
 
     if preset is not None and is_preset_file(preset):
         estimator_preset = preset if preset_applies("egomotion", preset) else None
