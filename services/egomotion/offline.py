@@ -145,19 +145,28 @@ def run_offline(
     reference: str | Path | None = None,
     out: Path | None = None,
     results_root: Path = Path("results"),
+    world: dict | None = None,
 ) -> tuple[OdometryResult, Path]:
     """Open the source ``spec``, build the estimator from the preset and config file, run
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
-    ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs."""
+    ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs.
+    ``world``: synthetic world settings over the preset's."""
+    from services.common.config import is_preset_file, preset_applies
     from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator, preset_names
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
 
-    if preset is not None and preset not in preset_names() and preset not in source_spec.preset_names():
+    if preset is not None and is_preset_file(preset):
+        estimator_preset = preset if preset_applies("egomotion", preset) else None
+        source_preset = preset if preset_applies("source", preset) else None
+    elif preset is not None and preset not in preset_names() and preset not in source_spec.preset_names():
         raise EstimatorConfigError(
             f"unknown preset {preset!r} (available: {', '.join(sorted(set(preset_names()) | set(source_spec.preset_names())))})"
         )
-    default, all_params = load_estimator_config(preset if preset in preset_names() else None, config_file)
+    else:
+        estimator_preset = preset if preset in preset_names() else None
+        source_preset = preset if preset in source_spec.preset_names() else None
+    default, all_params = load_estimator_config(estimator_preset, config_file)
     name = estimator or default
     if name is None:
         raise EstimatorConfigError(f"no estimator given: use --estimator ({', '.join(ESTIMATORS)}) or a preset that names one")
@@ -172,9 +181,10 @@ def run_offline(
         start=start,
         stop=stop,
         step=step,
-        preset=preset if preset in source_spec.preset_names() else None,
+        preset=source_preset,
         calibration=calibration,
         mono=name != "stereo",
+        world=world,
     )
     estimator_instance = make_estimator(name, getattr(source, "camera", None), all_params[name])
     reference_trajectory = load_reference(reference) if reference is not None else None
@@ -188,6 +198,7 @@ def run_offline(
         "stop": stop,
         "step": step,
         "reference": None if reference is None else str(reference),
+        "world": world or {},
         "camera": None if getattr(source, "camera", None) is None else dataclasses.asdict(source.camera),
         "estimator": estimator_config(estimator_instance),
     }

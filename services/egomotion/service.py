@@ -67,7 +67,8 @@ class EgomotionService(Service):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", choices=["scanline", "stereo", "mono", "passthrough"],
                         help="ego-motion estimator (default: the preset's, else scanline)")
-    parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic")
+    parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic, campus, "
+                                         "or a preset file")
 
 
 def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
