@@ -39,6 +39,7 @@ from services.expmap.graph import MOVED, ExperienceMap, Link, wrap
 REFRESH_PER_SOLVE = 256
 PRIOR_SIGMA = 1e-6          # the first experience anchors the map frame to the odometry frame
 RELINEARIZE_THRESHOLD = 0.01
+LINEAR_TOLERANCE = 1e-6     # χ² units: rounding in the closure test's linear-regime check
 
 
 class PoseGraph:
@@ -82,8 +83,11 @@ class PoseGraph:
         self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
         index = self._solve().getNewFactorsIndices()[-1]
         residual = self._residual(link, *(self.isam.calculateEstimatePose2(key) for key in (link.source, link.target)))
-        statistic = float(np.sqrt(max(float(innovation @ information @ residual), 0.0)))
-        accepted = statistic <= self.map.params.closure_gate
+        statistic = float(innovation @ information @ residual)
+        # For a linear problem νᵀΣ⁻¹r ≥ rᵀΣ⁻¹r ≥ 0. Less means the solve left the linear regime (a
+        # closure metres from where the map puts it tears the map apart to satisfy it): refused.
+        accepted = float(residual @ information @ residual) - LINEAR_TOLERANCE <= statistic <= self.map.params.closure_gate ** 2
+        statistic = float(np.sqrt(max(statistic, 0.0)))
         if accepted and self._kernel is not None:   # kept under the robust kernel
             self._factors.add(self._factor(link, self.gtsam.noiseModel.Robust.Create(
                 self._kernel, self.gtsam.noiseModel.Gaussian.Covariance(covariance))))
