@@ -247,10 +247,13 @@ def _draw_map(axes, poses: np.ndarray, links: list[Link], odometry: np.ndarray |
     for link in links:
         a, b = poses[link.source], poses[link.target]
         axes.plot([a[0], b[0]], [a[1], b[1]], color="C3" if link.loop_closure else "C0",
-                  linewidth=2.0 if link.loop_closure else 0.8)
+                  linewidth=2.0 if link.loop_closure and link.accepted else 0.8,
+                  linestyle="-" if link.accepted else ":")
     axes.plot(poses[:, 0], poses[:, 1], ".", color="C0", markersize=4, label=f"{len(poses)} experiences")
     axes.plot([], [], color="C0", linewidth=0.8, label="odometric link")
     axes.plot([], [], color="C3", linewidth=2.0, label="loop-closure link")
+    if any(not link.accepted for link in links):
+        axes.plot([], [], color="C3", linewidth=0.8, linestyle=":", label="closure the map refused")
     axes.plot(poses[0, 0], poses[0, 1], "o", color="black", markersize=6, label="first experience")
     axes.set_aspect("equal", adjustable="datalim")
     axes.grid(True, alpha=0.3)
@@ -273,7 +276,7 @@ def plot_map_correction(png_path, run: OfflineMap, title: str = "") -> Path | No
     else:
         left.set_title("no loop-closure link: the map is the odometry")
     final = run.experience_map
-    _draw_map(middle, final.poses, final.links, None, f"after relaxation (end of run, {len(final)} experiences)")
+    _draw_map(middle, final.final_poses(), final.links, None, f"the final map (end of run, {len(final)} experiences)")
     corrected = run.corrected_trajectory().positions
     if run.reference is not None:
         right.plot(run.reference.positions[:, 0], run.reference.positions[:, 1], "--", color="black", linewidth=1.0,

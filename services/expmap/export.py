@@ -27,7 +27,7 @@ from services.expmap.store import FORMAT, VERSION, Step
 log = logging.getLogger(__name__)
 
 GRAPH_FORMAT = "gridslam-experience-graph"
-GRAPH_VERSION = 1
+GRAPH_VERSION = 2
 
 
 class MapExportError(DataError):
@@ -79,8 +79,10 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
 
 
 def graph_dict(experience_map: ExperienceMap) -> dict:
-    """The map as a graph: experiences (map pose, template, frame of creation) and links
-    (odometric transform from source to target, the frame that made it, loop_closure flag)."""
+    """The map as a graph: experiences (final map pose, template, frame of creation) and links
+    (transform from source to target, the frame that made it, loop_closure, and accepted: false
+    for a closure the map refused)."""
+    poses = experience_map.final_poses()
     return {
         "format": GRAPH_FORMAT,
         "version": GRAPH_VERSION,
@@ -88,7 +90,7 @@ def graph_dict(experience_map: ExperienceMap) -> dict:
         "frames": len(experience_map.frames),
         "experiences": [{"id": i, "x": float(x), "y": float(y), "heading": float(heading),
                          "template_id": experience_map.templates[i], "frame": experience_map.created[i]}
-                        for i, (x, y, heading) in enumerate(experience_map.poses)],
+                        for i, (x, y, heading) in enumerate(poses)],
         "links": [asdict(link) for link in experience_map.links],
     }
 

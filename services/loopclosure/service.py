@@ -45,7 +45,7 @@ class LoopClosureConfig(BaseModel):
     fov_deg: float = Field(53.0, gt=0, le=360, description="Horizontal field of view of the image, degrees.")
     matcher: Literal["index", "exhaustive"] = Field(
         "index", description="index: candidates from a nearest-neighbour index, verified exactly; exhaustive: every template.")
-    candidates: int = Field(8, ge=1, description="Nearest templates per shift taken from the index, then compared exactly.")
+    candidates: int = Field(16, ge=1, description="Nearest templates per shift taken from the index, then compared exactly.")
     index_rows: int = Field(3, ge=1, description="Row bands of the index's template descriptor.")
     window: int = Field(10, ge=1, description="Consecutive frames of the consistency rule.")
     min_votes: int = Field(7, ge=1, description="Consistent possible closures needed in the window (paper: more than six).")

@@ -56,7 +56,7 @@ class TemplateParams:
     match_threshold: float = 0.085   # a view within this distance of a template matches it
     fov_deg: float = 53.0            # horizontal field of view of the whole image, for relative angles
     matcher: str = "index"           # "index" (nearest-neighbour candidates) or "exhaustive" (every template)
-    candidates: int = 8              # nearest templates per shift taken from the index, then compared exactly
+    candidates: int = 16             # nearest templates per shift taken from the index, then compared exactly
     index_rows: int = 3              # row bands of the index descriptor
 
     def check(self) -> None:

@@ -105,7 +105,8 @@ def evaluate(recording: Recording, statuses: dict[str, dict], restarts: dict[str
         "frames_expected": frames_expected,
         "frames_sent": len(sent),
         "wall_time_s": wall_time_s,
-        "loop_closures": [dict(zip(("frame", "matched_frame", "matched_template", "votes"), c)) for c in recording.closures],
+        "loop_closures": [dict(zip(("frame", "matched_frame", "matched_template", "votes"), c))
+                          for _, c in sorted(recording.closures.items())],
         "map_closures": map_closures(recording, trajs.get("groundtruth")),
         "view_templates": 1 + max((t for t, _ in recording.templates.values()), default=-1),
         "experiences": 1 + max((m[3] for m in recording.map_poses.values()), default=-1),
