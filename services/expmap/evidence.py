@@ -29,7 +29,7 @@ from services.evaluation.plots import new_figure, save
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.export import corrected_trajectory, graph_dict, odometry_trajectory
-from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams
+from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams, MapState
 from services.expmap.store import MapStore, Step
 from services.gridcells.motion_io import add_noise, load_motion
 from services.gridcells.offline import run_deadreckoning, run_grid
@@ -44,14 +44,6 @@ FRAME_COLUMNS = ("frame", "template_id", "is_new", "distance", "matched_frame", 
 
 class EvidenceError(DataError):
     """Inputs of an offline map build that do not fit together."""
-
-
-@dataclass(frozen=True, eq=False)
-class MapState:
-    """Experience poses (E, 3) and links at one moment."""
-
-    poses: np.ndarray
-    links: list[Link]
 
 
 @dataclass(eq=False)
@@ -186,7 +178,7 @@ def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetec
             if map_store is not None:
                 map_store.append(step)
             steps.append(step)
-            state = MapState(experience_map.poses.copy(), list(experience_map.links)) if before is None else None
+            state = experience_map.snapshot() if before is None else None
             result = step.apply(experience_map)
             if before is None and any(link.loop_closure and link.accepted for link in result.new_links):
                 before = state
