@@ -4,9 +4,9 @@ bridge to ROS is a field-by-field copy."""
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 SCHEMA_VERSION = 1
 
@@ -119,6 +119,24 @@ class Image(Model):
         if len(self.data) != self.step * self.height:
             raise ValueError(f"image data has {len(self.data)} bytes, expected step × height = {self.step * self.height}")
         return self
+
+
+def _check_covariance(values: list[float]) -> list[float]:
+    m = [values[0:3], values[3:6], values[6:9]]
+    if any(m[i][i] < 0 for i in range(3)):
+        raise ValueError("covariance has a negative variance on its diagonal")
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        if abs(m[i][j] - m[j][i]) > 1e-9 * (1.0 + abs(m[i][j])):
+            raise ValueError(f"covariance is not symmetric (element {i},{j} {m[i][j]!r} vs {j},{i} {m[j][i]!r})")
+    return values
+
+
+# A 3×3 covariance of a planar (forward, left, yaw) quantity, row-major: symmetric, non-negative variances.
+PlanarCovariance = Annotated[list[float], Field(min_length=9, max_length=9), AfterValidator(_check_covariance)]
+
+
+def covariance_field(what: str):
+    return Field(None, description=f"Covariance of {what} as (forward m, left m, yaw rad), 3×3 row-major; absent when unknown.")
 
 
 class PlanarIncrement(Model):

@@ -8,7 +8,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
-from schemas.base import Header, Image, Message, Model, PlanarIncrement, Pose, Twist
+from schemas.base import Header, Image, Message, Model, PlanarIncrement, Pose, Twist, PlanarCovariance, covariance_field
 
 
 class CameraInfo(Model):
@@ -48,6 +48,7 @@ class EgoMotion(Message):
     match_cost: float = Field(0.0, ge=0.0, description="Residual of the match (profile difference or reprojection error).")
     scaled: bool = Field(True, description="False when the translation has no metric scale (monocular without a scale cue).")
     estimator: str = Field(description="Estimator that produced it: scanline, stereo, mono or passthrough.")
+    covariance: PlanarCovariance | None = covariance_field("the increment's error, from the estimator's noise model")
 
 
 class GridPose(Message):
@@ -62,6 +63,8 @@ class GridPose(Message):
     step_length: float = Field(ge=0.0, description="Distance credited to the last frame, metres (paper eq. 5).")
     saturated: bool = Field(False, description="True when the lattice shift reached the decoder's search limit.")
     integrator: str = Field(description="Integrator that produced it: grid (the attractor network) or deadreckoning.")
+    increment_covariance: PlanarCovariance | None = covariance_field(
+        "the error of this frame's integrated increment (the ego-motion's, plus the lattice's direction noise)")
 
 
 class GridActivity(Message):
@@ -96,6 +99,16 @@ class LoopClosure(Message):
     matched_frame: int = Field(ge=0, description="Earlier frame of the place recognised.")
     matched_template: int = Field(ge=0, description="Template id of the place recognised.")
     votes: int = Field(ge=1, description="Consistent possible closures within the window that confirmed it.")
+    measurement: Literal["stereo", "mono", "scanline", "none"] = Field(
+        "none", description="How the relative pose was measured: stereo (PnP on the matched keyframe's triangulated "
+                            "features), mono (essential matrix: rotation and direction), scanline (the view templates' "
+                            "relative angle, the robot taken to be at the matched place), none (the geometry failed).")
+    relative_pose: PlanarIncrement | None = Field(
+        None, description="Pose of the current frame in the matched frame's body frame (for mono, forward/left is a unit "
+                          "direction); absent when the measurement is none.")
+    covariance: PlanarCovariance | None = covariance_field("the relative pose")
+    inliers: int = Field(0, ge=0, description="Feature matches supporting the relative pose.")
+    geometry_error: str = Field("", description="Why the geometry failed (measurement none), e.g. 'too few inliers (7 < 20)'.")
 
 
 class MapPose(Message):
@@ -128,6 +141,8 @@ class Link(Model):
     dheading: float = Field(description="Heading of the target minus the source's, radians.")
     frame: int = Field(ge=0, description="Frame at which the link was made.")
     loop_closure: bool = Field(False, description="True for a link made by a confirmed loop closure.")
+    accepted: bool = Field(True, description="False for a closure the map refused (its odometry contradicts it): kept as "
+                                             "evidence, not used to place the experiences.")
 
 
 class MapUpdate(Message):

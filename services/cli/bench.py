@@ -14,6 +14,8 @@ BENCHMARKS: dict[str, str] = {
     "pipeline": "services.pipeline.bench",
     "load": "services.pipeline.load",
     "loopclosure": "services.loopclosure.bench",
+    "mapping": "services.expmap.bench",
+    "geometry": "services.loopclosure.geometry_bench",
 }
 
 

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from services.common.config import load_config
+from services.common.config import load_config, presets
 from services.common.errors import ConfigError
 from services.evaluation.results import format_table
+from services.expmap.service import add_map_arguments
 
 
 def register(subparsers) -> None:
@@ -36,7 +37,9 @@ def register(subparsers) -> None:
     for name, help_text in (("build", "build a map offline from an image folder and a motion file"),
                             ("sweep", "build offline maps over several match thresholds and tolerances (Markdown table)")):
         command = commands.add_parser(name, help=help_text)
-        command.add_argument("--images", type=Path, required=True, help="folder of images (e.g. nubot_scene1/left)")
+        images = command.add_mutually_exclusive_group(required=True)
+        images.add_argument("--images", type=Path, help="folder of images (e.g. nubot_scene1/left)")
+        images.add_argument("--source", help="a source spec, e.g. stereo:../shared/data/nubot_scene1 (stereo closures)")
         command.add_argument("--odometry", type=Path, required=True,
                              help="motion file, one row per image (e.g. nubot_scene1/libviso2_egomotion.csv)")
         command.add_argument("--integrator", choices=["deadreckoning", "grid"], default="deadreckoning",
@@ -49,6 +52,7 @@ def register(subparsers) -> None:
                              help="a closure between frames whose odometric positions are farther apart is counted as false (m)")
         _add_params(command, "loopclosure, expmap and gridcells parameters")
         if name == "build":
+            add_map_arguments(command)
             command.add_argument("--match-threshold", type=float, help="override the template match threshold")
             command.add_argument("--tolerance", type=int, help="override the consistency tolerance (frames)")
             command.add_argument("--out", type=Path, required=True, help="folder for the results")
@@ -110,12 +114,14 @@ def _inputs(args):
     from services.gridcells.network import NetworkParams
     from services.loopclosure.service import LoopClosureConfig
     from services.source.datasets import ImageFolder
+    from services.source.spec import load_preset, open_source
 
     if not (args.same_place_radius > 0 and math.isfinite(args.same_place_radius)):
         raise ConfigError(f"--same-place-radius must be a positive number of metres, got {args.same_place_radius}")
-    overrides = {name: getattr(args, name, None) for name in ("match_threshold", "tolerance")}
+    overrides = {name: getattr(args, name, None) for name in ("match_threshold", "tolerance", "closure")}
     loopclosure = _config(LoopClosureConfig, "loopclosure", args, overrides)
-    expmap = _config(ExpMapConfig, "expmap", args)
+    expmap = _config(ExpMapConfig, "expmap", args, {"closure": getattr(args, "closure", None),
+                                                    "optimizer": getattr(args, "map_optimizer", None)})
     gridcells = _config(GridCellsConfig, "gridcells", args)
     params = NetworkParams(n=gridcells.neurons)
     scale = (auto_velocity_scale(np.array([gridcells.typical_speed]), params) if gridcells.velocity_scale == "auto"
@@ -124,8 +130,13 @@ def _inputs(args):
                                     args.noise_rot_deg, args.seed)
     # Closures are judged on the noiseless dead reckoning of the motion file.
     reference = odometry_from_motion(args.odometry) if (args.noise_trans or args.noise_rot_deg) else None
-    images = ImageFolder(args.images, stop=args.n_frames, grey=True)
-    config = {"images": args.images, "odometry": args.odometry, "integrator": args.integrator,
+    source_preset = args.preset if args.preset in presets("source") else None
+    if args.source:
+        images = open_source(args.source, stop=args.n_frames, preset=source_preset)
+    else:   # a mono folder; the source preset's calibration (if any) lets closures be measured
+        camera = load_preset(source_preset)[0] if source_preset else None
+        images = ImageFolder(args.images, stop=args.n_frames, grey=True, camera=camera)
+    config = {"images": args.images, "source": args.source, "odometry": args.odometry, "integrator": args.integrator,
               "noise_trans": args.noise_trans, "noise_rot_deg": args.noise_rot_deg, "seed": args.seed,
               "same_place_radius": args.same_place_radius, "loopclosure": loopclosure.model_dump(mode="json"),
               "expmap": expmap.model_dump(mode="json"), "gridcells": gridcells.model_dump(mode="json") if args.integrator == "grid" else None}
@@ -140,7 +151,7 @@ def run_build(args) -> int:
     store = args.out / "experience_map.log"
     if store.exists():
         store.unlink()   # a build starts a new map (the log is the map's record, not an input)
-    run = build_map(images, odometry, loopclosure.template_params(), loopclosure.consistency_params(), expmap.params(), store, reference)
+    run = build_map(images, odometry, loopclosure.detector(), expmap.params(), store, reference)
     files = write_build(args.out, run, args.same_place_radius, config, args.title)
     summary = run.summary(args.same_place_radius)
     first = summary["first_confirmed"]
@@ -151,6 +162,8 @@ def run_build(args) -> int:
         ("possible closures elsewhere", summary["possible_closures_elsewhere"], f"> {args.same_place_radius:g} m"),
         ("confirmed closures", summary["confirmed_closures"], ""),
         ("confirmed closures elsewhere", summary["confirmed_closures_elsewhere"], f"> {args.same_place_radius:g} m"),
+        ("closures accepted / rejected / unmeasured by the map",
+         f"{summary['closures_accepted']} / {summary['closures_rejected']} / {summary['closures_unmeasured']}", ""),
         ("first confirmed", f"frame {first['frame']} ↔ frame {first['matched_frame']}" if first else "-", ""),
         ("confirmed at frames", "{}..{}".format(*summary["confirmed_frames"]) if first else "-", ""),
         ("matched frames", ",".join(map(str, summary["matched_frames"])) or "-", ""),
@@ -172,8 +185,7 @@ def run_sweep(args) -> int:
         raise ConfigError(f"--thresholds {args.thresholds!r} / --tolerances {args.tolerances!r}: comma-separated numbers expected") from None
     images, odometry, reference, loopclosure, expmap, _ = _inputs(args)
     images = list(images)   # read once, matched many times
-    rows = sweep(images, odometry, loopclosure.template_params(), loopclosure.consistency_params(), expmap.params(),
-                 thresholds, tolerances, args.same_place_radius, reference)
+    rows = sweep(images, odometry, loopclosure, expmap.params(), thresholds, tolerances, args.same_place_radius, reference)
     header = list(rows[0]) if rows else []
     print("| " + " | ".join(header) + " |")
     print("|" + "|".join("---:" for _ in header) + "|")

@@ -9,6 +9,7 @@ from pathlib import Path
 from services.egomotion import ESTIMATORS
 from services.egomotion.offline import run_offline, summary_rows
 from services.evaluation.results import format_table
+from services.source.spec import add_world_arguments, parse_world_flags
 
 
 def register(subparsers) -> None:
@@ -22,7 +23,7 @@ def register(subparsers) -> None:
     parser.add_argument("--source", required=True, metavar="SPEC",
                         help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
     parser.add_argument("--estimator", metavar="NAME", help=f"{', '.join(ESTIMATORS)} (default: the one the preset or config names)")
-    parser.add_argument("--preset", metavar="NAME", help="dataset preset for the source and the estimator (nubot, kitti, stlucia, synthetic)")
+    parser.add_argument("--preset", metavar="NAME", help="dataset preset for the source and the estimator (nubot, kitti, stlucia, synthetic, campus) or a preset file")
     parser.add_argument("--config", type=Path, metavar="FILE", help="estimator TOML overriding the preset (docs/egomotion.md)")
     parser.add_argument("--calibration", type=Path, metavar="FILE", help="camera calibration file (docs/sources.md)")
     parser.add_argument("--start", type=int, default=0, help="first frame (default 0)")
@@ -33,6 +34,7 @@ def register(subparsers) -> None:
                         help="reference to score against, row k = frame k: TUM, KITTI poses, or a CSV of increments "
                         "(forward,left,yaw or LIBVISO2's table)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
+    add_world_arguments(parser)
     parser.set_defaults(func=run)
 
 
@@ -49,6 +51,7 @@ def run(args) -> int:
         n_frames=args.n_frames,
         reference=args.reference,
         out=args.out,
+        world=parse_world_flags(args.world, args.laps),
     )
     print(format_table(summary_rows(result)))
     print(f"results: {folder}")

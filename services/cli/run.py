@@ -8,6 +8,8 @@ from pathlib import Path
 
 from services.common.config import load_config
 from services.common.runtime import DEFAULT_ROUTER
+from services.expmap.service import add_map_arguments
+from services.source.spec import add_world_arguments
 
 
 def add_run_arguments(parser, *, source_required: bool) -> None:
@@ -16,7 +18,8 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
     parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
-    parser.add_argument("--preset", help="dataset preset: synthetic, nubot, kitti, stlucia")
+    parser.add_argument("--preset", help="dataset preset: synthetic, campus, nubot, kitti, stlucia, or a preset file "
+                                         "(base preset and per-service tables, docs/sources.md)")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file for the source")
     parser.add_argument("-c", "--config", type=Path, help="gridslam TOML config file for every service")
     parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
@@ -29,8 +32,10 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--robot", help="robot name (default robot0)")
     parser.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
                         help="skip loop closure and the experience map")
+    add_map_arguments(parser)
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
+    add_world_arguments(parser)
 
 
 def register(subparsers) -> None:
@@ -72,10 +77,13 @@ def execute(args, **defaults) -> int:
     from services.evaluation.results import format_table
     from services.pipeline.report import summary_rows
     from services.pipeline.runner import RunConfig, run_pipeline
+    from services.source.spec import parse_world_flags
 
     flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
              "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view}
+             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view,
+             "closure": args.closure, "map_optimizer": args.map_optimizer,
+             "world": parse_world_flags(args.world, args.laps) or None}
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
     progress = Progress()
     try:

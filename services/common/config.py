@@ -7,6 +7,13 @@ A config file is TOML with one table per concern: `[runtime]` for the Zenoh sess
 `services/<service>/presets/<name>.toml`, a flat table of that service's fields. Environment
 variables are `GRIDSLAM_<SECTION>_<FIELD>` in upper case, e.g. `GRIDSLAM_RUNTIME_CONNECT`
 or `GRIDSLAM_GRIDCELLS_DECODER`; list fields take comma-separated values.
+
+A preset may also be a file of one's own (a path ending in .toml): `base = "NAME"` names the
+preset it builds on, and one table per service (`[source]`, `[loopclosure]`, ...) holds the
+keys that replace the base's, key by key (one level deep: `[egomotion.stereo]` replaces single
+parameters). A service the file has no table for stays on the base's preset (or its defaults,
+without a base). Top-level keys other than `base` are source keys (the older flat shape).
+`preset_values` reads both kinds, so every service that loads a preset takes files too.
 """
 
 from __future__ import annotations
@@ -45,12 +52,93 @@ def presets(service: str) -> list[str]:
     return sorted(p.stem for p in (SERVICES_DIR / service / "presets").glob("*.toml"))
 
 
-def preset_values(service: str, preset: str) -> dict[str, Any]:
-    path = SERVICES_DIR / service / "presets" / f"{preset}.toml"
+def preset_services() -> list[str]:
+    """The services that have presets (the tables a preset file may hold)."""
+    return sorted(p.parent.name for p in SERVICES_DIR.glob("*/presets"))
+
+
+def is_preset_file(preset: str | Path) -> bool:
+    """Whether ``preset`` names a file (a path or a name ending in .toml) rather than a shipped preset."""
+    text = str(preset)
+    return text.endswith(".toml") or "/" in text or "\\" in text
+
+
+def has_named_preset(service: str, name: str) -> bool:
+    return (SERVICES_DIR / service / "presets" / f"{name}.toml").is_file()
+
+
+def read_preset_file(path: str | Path) -> tuple[str | None, dict[str, dict[str, Any]]]:
+    """A preset file's base (or None) and its tables by service, checked: a missing file, an
+    unknown base or table, or a table that is not one is a one-line ConfigError naming the file."""
+    path = Path(path)
     if not path.is_file():
+        raise ConfigError(f"{path}: preset file not found")
+    content = read_toml(path)
+    base = content.pop("base", None)
+    services = preset_services()
+    if base is not None:
+        if not isinstance(base, str) or not any(has_named_preset(service, base) for service in services):
+            names = sorted({name for service in services for name in presets(service)})
+            raise ConfigError(f"{path}: base {base!r} is not a preset (available: {', '.join(names)})")
+    tables = {key: value for key, value in content.items() if isinstance(value, dict)}
+    flat = {key: value for key, value in content.items() if not isinstance(value, dict)}
+    for key in tables:
+        if key not in services:
+            raise ConfigError(f"{path}: unknown table [{key}] (a preset file holds base and the tables "
+                              f"{', '.join(f'[{s}]' for s in services)})")
+    if flat:
+        if "source" in tables:
+            raise ConfigError(f"{path}: key {next(iter(flat))!r} outside a table while the file has a [source] table "
+                              f"(put the source's keys in [source])")
+        tables["source"] = flat
+    return base, tables
+
+
+def preset_values(service: str, preset: str | Path) -> dict[str, Any]:
+    """The settings a preset gives ``service``: a shipped preset's file, or for a preset file
+    its base's preset for the service (if any) with the file's table for it on top."""
+    if is_preset_file(preset):
+        base, tables = read_preset_file(preset)
+        values = preset_values(service, base) if base is not None and has_named_preset(service, base) else {}
+        for key, value in tables.get(service, {}).items():
+            if isinstance(value, dict) and isinstance(values.get(key), dict):
+                values[key] = {**values[key], **value}
+            else:
+                values[key] = value
+        return values
+    if not has_named_preset(service, str(preset)):
         available = ", ".join(presets(service)) or "none"
         raise ConfigError(f"unknown preset {preset!r} for {service} (available: {available})")
-    return read_toml(path)
+    return read_toml(SERVICES_DIR / service / "presets" / f"{preset}.toml")
+
+
+def preset_applies(service: str, preset: str | Path) -> bool:
+    """Whether ``preset`` gives ``service`` any settings (a preset file: a table for it, or a
+    base that has a preset for it)."""
+    if not is_preset_file(preset):
+        return has_named_preset(service, str(preset))
+    base, tables = read_preset_file(preset)
+    return service in tables or (base is not None and has_named_preset(service, base))
+
+
+def describe_preset(preset: str | Path, services: list[str]) -> str:
+    """One line saying where each service's preset settings come from, for a preset file."""
+    base, tables = read_preset_file(preset)
+    from_file = [s for s in services if s in tables]
+    on_base = [s for s in services if s not in tables and base is not None and has_named_preset(s, base)]
+    default = [s for s in services if s not in from_file and s not in on_base]
+
+    def say(names: list[str], one: str, many: str) -> str:
+        return f"{', '.join(names)} {one if len(names) == 1 else many}"
+
+    parts = []
+    if from_file:
+        parts.append(say(from_file, "takes", "take") + " keys from it" + (f" (over preset {base!r})" if base else ""))
+    if on_base:
+        parts.append(say(on_base, "stays", "stay") + f" on preset {base!r}")
+    if default:
+        parts.append(say(default, "runs", "run") + " on defaults (" + ("no base" if base is None else f"{base!r} has no preset for it") + ")")
+    return f"preset file {preset}: " + "; ".join(parts)
 
 
 def env_values(section: str, model: type[BaseModel], environ: Mapping[str, str] | None = None) -> dict[str, Any]:
@@ -71,7 +159,7 @@ def load_config(
     section: str,
     *,
     defaults: Mapping[str, Any] | None = None,
-    preset: str | None = None,
+    preset: str | Path | None = None,
     config_file: Path | None = None,
     overrides: Mapping[str, Any] | None = None,
     environ: Mapping[str, str] | None = None,
@@ -82,7 +170,7 @@ def load_config(
     sources: list[str] = []
     if preset:
         values.update(preset_values(section, preset))
-        sources.append(f"preset {preset!r}")
+        sources.append(f"preset file {preset}" if is_preset_file(preset) else f"preset {preset!r}")
     if config_file is not None:
         table = read_toml(config_file).get(section, {})
         if not isinstance(table, dict):

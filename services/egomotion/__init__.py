@@ -75,17 +75,23 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         raise EstimatorConfigError(f"{path}: config file not found") from None
     except (OSError, tomllib.TOMLDecodeError) as error:
         raise EstimatorConfigError(f"{path}: not a readable TOML file: {error}") from None
+    return check_config_table(table, str(path))
+
+
+def check_config_table(table: dict[str, Any], where: str) -> dict[str, Any]:
+    """``table`` if it has the shape of an estimator preset (optional ``estimator`` string and
+    one table per estimator name, each of known parameters), else EstimatorConfigError naming ``where``."""
     for key, value in table.items():
         if key == "estimator":
             if value not in ESTIMATORS:
-                raise EstimatorConfigError(f"{path}: estimator {value!r} is not one of {', '.join(ESTIMATORS)}")
+                raise EstimatorConfigError(f"{where}: estimator {value!r} is not one of {', '.join(ESTIMATORS)}")
         elif key in ESTIMATORS:
             if not isinstance(value, dict):
-                raise EstimatorConfigError(f"{path}: [{key}] must be a table of parameters")
-            params_from_dict(ESTIMATORS[key][1], value, where=f"{path}: [{key}]")
+                raise EstimatorConfigError(f"{where}: [{key}] must be a table of parameters")
+            params_from_dict(ESTIMATORS[key][1], value, where=f"{where}: [{key}]")
         else:
             raise EstimatorConfigError(
-                f"{path}: unknown key {key!r} (expected 'estimator' or a table [{'], ['.join(ESTIMATORS)}])"
+                f"{where}: unknown key {key!r} (expected 'estimator' or a table [{'], ['.join(ESTIMATORS)}])"
             )
     return table
 
@@ -94,19 +100,23 @@ def load_estimator_config(
     preset: str | None = None, config_file: str | Path | None = None
 ) -> tuple[str | None, dict[str, dict[str, Any]]]:
     """The default estimator name (or None) and the parameters of every estimator, from a
-    preset name and/or a config file (the file overrides the preset key by key)."""
+    preset (a name, or a preset file: its [egomotion] table over its base's,
+    services/common/config.py) and/or a config file (the file overrides the preset key by key)."""
+    from services.common.config import is_preset_file, preset_values
+
     default: str | None = None
     params: dict[str, dict[str, Any]] = {name: {} for name in ESTIMATORS}
-    sources: list[Path] = []
+    tables: list[dict[str, Any]] = []
     if preset is not None:
-        path = PRESET_DIR / f"{preset}.toml"
-        if not path.is_file():
+        if is_preset_file(preset):
+            tables.append(check_config_table(preset_values("egomotion", preset), f"{preset}: [egomotion]"))
+        elif preset in preset_names():
+            tables.append(read_config_file(PRESET_DIR / f"{preset}.toml"))
+        else:
             raise EstimatorConfigError(f"unknown estimator preset {preset!r} (available: {', '.join(preset_names())})")
-        sources.append(path)
     if config_file is not None:
-        sources.append(Path(config_file))
-    for path in sources:
-        table = read_config_file(path)
+        tables.append(read_config_file(config_file))
+    for table in tables:
         default = table.get("estimator", default)
         for name in ESTIMATORS:
             params[name].update(table.get(name, {}))
@@ -119,6 +129,7 @@ __all__ = [
     "Estimator",
     "EstimatorConfigError",
     "Increment",
+    "check_config_table",
     "increment_from_transform",
     "load_estimator_config",
     "make_estimator",

@@ -55,6 +55,42 @@ class Increment:
     scaled: bool = True
 
 
+@dataclass(frozen=True)
+class NoiseModel:
+    """The uncertainty an estimator reports with each increment (EgoMotion.covariance), as
+    standard deviations per frame: forward and left each sigma_translation × metres moved +
+    sigma_translation_floor; yaw sigma_yaw × radians turned + sigma_yaw_per_m × metres moved +
+    sigma_yaw_floor; uncorrelated. A failed frame (quality 0: its motion is a fallback) reports
+    sigma_failure_m and sigma_failure_rad. Every estimator's parameters include these, with
+    defaults measured against ground truth for that estimator (docs/egomotion.md,
+    "Uncertainty"); the experience map weighs the odometry by them."""
+
+    sigma_translation: float = 0.02
+    sigma_translation_floor: float = 0.001
+    sigma_yaw: float = 0.02
+    sigma_yaw_per_m: float = 0.005
+    sigma_yaw_floor: float = 0.0005
+    sigma_failure_m: float = 0.5
+    sigma_failure_rad: float = 0.2
+
+    def __post_init__(self) -> None:
+        for field in dataclasses.fields(NoiseModel):
+            if getattr(self, field.name) < 0:
+                raise ValueError(f"{field.name} must be >= 0")
+
+    def covariance(self, increment: Increment) -> np.ndarray | None:
+        """3×3 covariance of (forward, left, yaw); None for an increment without metric scale."""
+        if not increment.scaled:
+            return None
+        if increment.quality <= 0.0:
+            translation, yaw = self.sigma_failure_m, self.sigma_failure_rad
+        else:
+            distance = math.hypot(increment.forward, increment.left)
+            translation = self.sigma_translation * distance + self.sigma_translation_floor
+            yaw = self.sigma_yaw * abs(increment.yaw) + self.sigma_yaw_per_m * distance + self.sigma_yaw_floor
+        return np.diag([translation ** 2, translation ** 2, yaw ** 2])
+
+
 def zero_increment(*, inliers: int = 0, match_cost: float = 0.0, scaled: bool = True) -> Increment:
     """No motion, quality 0: the first frame, or a frame nothing could be estimated from."""
     return Increment(0.0, 0.0, 0.0, np.eye(4), 0.0, int(inliers), float(match_cost), scaled)

@@ -32,7 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.egomotion.base import Increment, grey, increment_with_transform, zero_increment
+from services.egomotion.base import Increment, NoiseModel, grey, increment_with_transform, zero_increment
 from services.egomotion.features import FeatureParams, TrackParams, detect_bucketed, global_shift, track
 
 logger = logging.getLogger(__name__)
@@ -41,7 +41,7 @@ SCALE_SOURCES = ("auto", "odometry", "ground", "none")
 
 
 @dataclass(frozen=True)
-class MonoParams:
+class MonoParams(NoiseModel):
     fast_threshold: int = 20
     bucket_size_px: int = 50
     features_per_bucket: int = 4
@@ -69,7 +69,15 @@ class MonoParams:
     scale_window: int = 9
     failure_motion: str = "zero"
 
+    # Uncertainty per frame (base.NoiseModel): the scale comes from outside the images.
+    sigma_translation: float = 0.1
+    sigma_translation_floor: float = 0.002
+    sigma_yaw: float = 0.03
+    sigma_yaw_per_m: float = 0.01
+    sigma_yaw_floor: float = 0.003
+
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.scale_source not in SCALE_SOURCES:
             raise ValueError(f"scale_source must be one of {', '.join(SCALE_SOURCES)}")
         if self.failure_motion not in ("zero", "hold"):

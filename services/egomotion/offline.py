@@ -51,6 +51,7 @@ class OdometryResult:
     seconds: np.ndarray  # (N,) wall time of each estimate() call
     scaled: bool  # False when any increment lacks metric scale
     trajectory: Trajectory  # dead-reckoned planar trajectory (x forward, y left at the start)
+    covariances: np.ndarray | None = None  # (N, 3, 3) of each increment, from the estimator's noise model
     ground_truth: Trajectory | None = None  # planar, re-anchored at the first frame
     reference: Trajectory | None = None  # planar, re-anchored at the first frame
     reference_label: str = "reference"
@@ -79,11 +80,14 @@ def odometry(
     """
     rows: list[tuple[int, float, Increment, float]] = []
     poses: list[np.ndarray | None] = []
+    covariances: list[np.ndarray] = []
     for frame in source:
         start = time.perf_counter()
         increment = estimator.estimate(frame)
         elapsed = time.perf_counter() - start
         rows.append((int(frame.seq), float(frame.stamp), increment, elapsed))
+        covariance = estimator.params.covariance(increment) if hasattr(estimator.params, "covariance") else None
+        covariances.append(np.full((3, 3), np.nan) if covariance is None else covariance)
         poses.append(None if frame.ground_truth is None else np.asarray(frame.ground_truth, dtype=float))
         if progress is not None:
             progress(len(rows), increment)
@@ -116,6 +120,7 @@ def odometry(
         seconds=np.array([r[3] for r in rows]),
         scaled=all(r[2].scaled for r in rows),
         trajectory=trajectory,
+        covariances=np.array(covariances),
         ground_truth=ground_truth,
         reference=selected_reference,
         reference_label=reference_label,
@@ -140,19 +145,28 @@ def run_offline(
     reference: str | Path | None = None,
     out: Path | None = None,
     results_root: Path = Path("results"),
+    world: dict | None = None,
 ) -> tuple[OdometryResult, Path]:
     """Open the source ``spec``, build the estimator from the preset and config file, run
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
-    ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs."""
+    ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs.
+    ``world``: synthetic world settings over the preset's."""
+    from services.common.config import is_preset_file, preset_applies
     from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator, preset_names
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
 
-    if preset is not None and preset not in preset_names() and preset not in source_spec.preset_names():
+    if preset is not None and is_preset_file(preset):
+        estimator_preset = preset if preset_applies("egomotion", preset) else None
+        source_preset = preset if preset_applies("source", preset) else None
+    elif preset is not None and preset not in preset_names() and preset not in source_spec.preset_names():
         raise EstimatorConfigError(
             f"unknown preset {preset!r} (available: {', '.join(sorted(set(preset_names()) | set(source_spec.preset_names())))})"
         )
-    default, all_params = load_estimator_config(preset if preset in preset_names() else None, config_file)
+    else:
+        estimator_preset = preset if preset in preset_names() else None
+        source_preset = preset if preset in source_spec.preset_names() else None
+    default, all_params = load_estimator_config(estimator_preset, config_file)
     name = estimator or default
     if name is None:
         raise EstimatorConfigError(f"no estimator given: use --estimator ({', '.join(ESTIMATORS)}) or a preset that names one")
@@ -167,9 +181,10 @@ def run_offline(
         start=start,
         stop=stop,
         step=step,
-        preset=preset if preset in source_spec.preset_names() else None,
+        preset=source_preset,
         calibration=calibration,
         mono=name != "stereo",
+        world=world,
     )
     estimator_instance = make_estimator(name, getattr(source, "camera", None), all_params[name])
     reference_trajectory = load_reference(reference) if reference is not None else None
@@ -183,6 +198,7 @@ def run_offline(
         "stop": stop,
         "step": step,
         "reference": None if reference is None else str(reference),
+        "world": world or {},
         "camera": None if getattr(source, "camera", None) is None else dataclasses.asdict(source.camera),
         "estimator": estimator_config(estimator_instance),
     }
@@ -234,7 +250,24 @@ def evaluate(result: OdometryResult) -> dict[str, Any]:
             metrics[label] = compare(result.trajectory, truth, scaled=result.scaled)
             if label == "reference":
                 metrics[label]["label"] = result.reference_label
+    if result.ground_truth is not None and result.covariances is not None and n > 1:
+        metrics["uncertainty"] = uncertainty(result.increments[1:], np.column_stack(planar_increments(result.ground_truth))[1:],
+                                             result.covariances[1:])
     return metrics
+
+
+def uncertainty(increments: np.ndarray, truth: np.ndarray, covariances: np.ndarray) -> dict[str, Any]:
+    """How the noise model's standard deviations compare with the errors per frame: the rms
+    error, the median modelled σ and the mean normalised squared error (error² / σ², 1 for a
+    calibrated model, below 1 for a cautious one), each for forward, left and yaw."""
+    errors = increments - truth
+    errors[:, 2] = (errors[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    sigma = np.sqrt(np.diagonal(covariances, axis1=1, axis2=2))
+    known = np.isfinite(sigma).all(axis=1)
+    if not known.any():
+        return {}
+    return {"rms": np.sqrt((errors ** 2).mean(axis=0)).tolist(), "sigma_median": np.median(sigma[known], axis=0).tolist(),
+            "normalised_squared_error": ((errors[known] / sigma[known]) ** 2).mean(axis=0).tolist()}
 
 
 def _step(seqs: np.ndarray) -> int:
@@ -371,4 +404,9 @@ def summary_rows(result: OdometryResult) -> list[tuple[str, Any, str]]:
                 rows.append((f"translation error per frame, RMSE{suffix}", errors["trans_rmse"], "m"))
         if scores.get("endpoint"):
             rows.append((f"endpoint error vs {name}", scores["endpoint"]["metres"], "m"))
+    for what, key, unit in (("error per frame, rms", "rms", "m, m, rad"), ("noise model σ, median", "sigma_median", "m, m, rad"),
+                            ("normalised squared error", "normalised_squared_error", "1: calibrated")):
+        values = m.get("uncertainty", {}).get(key)
+        if values:
+            rows.append((f"{what} (forward, left, yaw)", ", ".join(f"{v:.3g}" for v in values), unit))
     return rows

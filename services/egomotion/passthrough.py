@@ -15,6 +15,7 @@ import numpy as np
 from services.egomotion.base import (
     EgomotionError,
     Increment,
+    NoiseModel,
     increment_with_transform,
     invert_transform,
     transform_from_increment,
@@ -25,7 +26,7 @@ SOURCES = ("auto", "odometry", "ground_truth")
 
 
 @dataclass(frozen=True)
-class PassthroughParams:
+class PassthroughParams(NoiseModel):
     # Where increments come from: auto (odometry when the frame has it, else ground truth),
     # odometry, or ground_truth.
     source: str = "auto"
@@ -35,11 +36,25 @@ class PassthroughParams:
     noise_yaw: float = 0.0
     seed: int = 0
 
+    # Uncertainty per frame (base.NoiseModel), to which the added noise's variances are added.
+    sigma_translation: float = 0.01
+    sigma_translation_floor: float = 0.0005
+    sigma_yaw: float = 0.01
+    sigma_yaw_per_m: float = 0.002
+    sigma_yaw_floor: float = 0.0002
+
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.source not in SOURCES:
             raise ValueError(f"source must be one of {', '.join(SOURCES)}")
         if min(self.noise_forward, self.noise_left, self.noise_yaw) < 0:
             raise ValueError("noise standard deviations must be >= 0")
+
+    def covariance(self, increment: Increment) -> np.ndarray | None:
+        covariance = super().covariance(increment)
+        if covariance is not None:
+            covariance = covariance + np.diag([self.noise_forward ** 2, self.noise_left ** 2, self.noise_yaw ** 2])
+        return covariance
 
 
 class PassthroughEstimator:

@@ -53,19 +53,22 @@ class EgomotionService(Service):
         if self.estimator is None:
             self.estimator = make_estimator(self.estimator_name, frame.camera, self.params)
         increment = self.estimator.estimate(frame)
+        covariance = self.estimator.params.covariance(increment)
         self.publish("egomotion", EgoMotion(
             header=message.header.model_copy(update={"frame_id": "base_link"}),
             increment=PlanarIncrement(forward=increment.forward, left=increment.left, yaw=increment.yaw),
             transform=[float(v) for v in increment.transform.ravel()] if increment.transform is not None else None,
             quality=min(max(float(increment.quality), 0.0), 1.0), inliers=int(increment.inliers),
             match_cost=max(float(increment.match_cost), 0.0), scaled=increment.scaled, estimator=self.estimator_name,
+            covariance=[float(v) for v in covariance.ravel()] if covariance is not None else None,
         ))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", choices=["scanline", "stereo", "mono", "passthrough"],
                         help="ego-motion estimator (default: the preset's, else scanline)")
-    parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic")
+    parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic, campus, "
+                                         "or a preset file")
 
 
 def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:

@@ -143,3 +143,39 @@ def plot_heatmaps(png_path, images: dict[str, np.ndarray], title: str = "", cmap
     if title:
         figure.suptitle(title)
     return save(figure, png_path)
+
+
+def plot_layout(png_path, walls: np.ndarray, route: np.ndarray, regions: dict[str, list] | None = None,
+                labels: dict[str, tuple[float, float]] | None = None, title: str = "") -> Path | None:
+    """A world from above: wall segments (N×4: x0, y0, dx, dy) in black, the route (M×2) coloured
+    by distance driven with its start marked, labelled rectangles (x0, x1, y0, y1) per
+    ``regions`` name (e.g. look-alike places) and text at ``labels`` points."""
+    walls, route = np.asarray(walls, dtype=float), np.asarray(route, dtype=float)
+    if walls.ndim != 2 or walls.shape[1] != 4 or route.ndim != 2 or route.shape[1] != 2:
+        raise PlotError(f"walls must be N×4 and the route M×2, got {walls.shape} and {route.shape}")
+    from matplotlib.collections import LineCollection
+    from matplotlib.patches import Rectangle
+
+    extent = np.ptp(np.r_[walls[:, :2], walls[:, :2] + walls[:, 2:]], axis=0)
+    figure = new_figure(figsize=(11.0, 11.0 * extent[1] / extent[0] + 1.2), layout="constrained")
+    if figure is None:
+        return None
+    axes = figure.add_subplot()
+    axes.add_collection(LineCollection(np.stack([walls[:, :2], walls[:, :2] + walls[:, 2:]], axis=1), colors="black", linewidths=0.8))
+    shown = axes.scatter(route[:, 0], route[:, 1], c=np.arange(len(route)), s=0.6, cmap="viridis", zorder=2)
+    figure.colorbar(shown, ax=axes, shrink=0.6, label="frame")
+    axes.plot(route[0, 0], route[0, 1], marker="o", color="red", markersize=8, linestyle="none", label="start", zorder=3)
+    for index, (name, rectangles) in enumerate((regions or {}).items()):
+        for x0, x1, y0, y1 in rectangles:
+            axes.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor=f"C{index + 1}", linewidth=2.0, zorder=4))
+        axes.plot([], [], color=f"C{index + 1}", linewidth=2.0, label=name)
+    for text, (x, y) in (labels or {}).items():
+        axes.annotate(text, (x, y), fontsize="small", ha="center", va="center", color="dimgray", zorder=5)
+    axes.legend(loc="upper right", fontsize="small")
+    axes.set_aspect("equal", adjustable="datalim")
+    axes.set_xlabel("x [m] (east)")
+    axes.set_ylabel("y [m] (north)")
+    axes.grid(True, alpha=0.3)
+    if title:
+        axes.set_title(title)
+    return save(figure, png_path)

@@ -18,7 +18,7 @@ import csv
 import logging
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,12 +29,12 @@ from services.evaluation.plots import new_figure, save
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.export import corrected_trajectory, graph_dict, odometry_trajectory
-from services.expmap.graph import ExperienceMap, Link, MapParams
+from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams, MapState
 from services.expmap.store import MapStore, Step
 from services.gridcells.motion_io import add_noise, load_motion
 from services.gridcells.offline import run_deadreckoning, run_grid
-from services.loopclosure.consistency import Closure, ConsistencyParams, ConsistencyRule
-from services.loopclosure.templates import TemplateParams, ViewTemplates
+from services.loopclosure.consistency import Closure
+from services.loopclosure.detector import LoopClosureDetector
 
 log = logging.getLogger(__name__)
 
@@ -44,14 +44,6 @@ FRAME_COLUMNS = ("frame", "template_id", "is_new", "distance", "matched_frame", 
 
 class EvidenceError(DataError):
     """Inputs of an offline map build that do not fit together."""
-
-
-@dataclass(frozen=True, eq=False)
-class MapState:
-    """Experience poses (E, 3) and links at one moment."""
-
-    poses: np.ndarray
-    links: list[Link]
 
 
 @dataclass(eq=False)
@@ -117,6 +109,9 @@ class OfflineMap:
             "experiences": len(self.experience_map),
             "links": len(links),
             "loop_closure_links": sum(link.loop_closure for link in links),
+            "closures_accepted": self.experience_map.closures["accepted"],
+            "closures_rejected": self.experience_map.closures["rejected"],
+            "closures_unmeasured": self.experience_map.closures["unmeasured"],
             "possible_closures": len(possible),
             "possible_closures_elsewhere": len(possible_far),
             "possible_closures_elsewhere_frames": possible_far,
@@ -146,16 +141,16 @@ def odometry_from_motion(path, integrator: str = "deadreckoning", decoder: str =
     raise EvidenceError(f"unknown integrator {integrator!r} (grid or deadreckoning)")
 
 
-def build_map(images: Iterable, odometry: Trajectory, templates: TemplateParams, consistency: ConsistencyParams,
-              map_params: MapParams, store: Path | None = None, reference: Trajectory | None = None) -> OfflineMap:
-    """Run view templates, the consistency rule and the experience map over `images` (objects
-    with `seq`, `stamp`, `left`: e.g. services.source.datasets.ImageFolder frames, or a list of
-    them); odometry row k is the pose at frame k. With `store`, the map's inputs are written to
-    that log as the expmap service writes them (so `gridslam map export` reads it). Closures
-    are judged on `reference` (row k at frame k; None: the odometry)."""
+def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetector, map_params: MapParams,
+              store: Path | None = None, reference: Trajectory | None = None) -> OfflineMap:
+    """Run the loop-closure detector and the experience map over `images` (frames with `seq`,
+    `stamp`, `left`, and optionally `right` and `camera`: a source's frames, or a list of them);
+    odometry row k is the pose at frame k. With `store`, the map's inputs are written to that log
+    as the expmap service writes them (so `gridslam map export` reads it). Closures are judged on
+    `reference` (row k at frame k; None: the odometry)."""
     x, y, heading = odometry.planar()
-    view_templates, rule = ViewTemplates(templates), ConsistencyRule(consistency)
     experience_map = ExperienceMap(map_params)
+    recent_frames = detector.rule.params.recent_frames
     map_store = MapStore(store, map_params) if store is not None else None
     if map_store is not None and map_store.steps:
         map_store.close()
@@ -170,23 +165,28 @@ def build_map(images: Iterable, odometry: Trajectory, templates: TemplateParams,
             seq = int(frame.seq)
             if seq >= len(x):
                 raise EvidenceError(f"frame {seq}: the odometry has only {len(x)} poses")
-            match = view_templates.observe(frame.left, seq)
-            closure = rule.update(seq, match.template_id, match.is_new, match.matched_frame)
+            observed = detector.observe(seq, frame.left, getattr(frame, "right", None), getattr(frame, "camera", None))
+            match, closure, measurement = observed.match, observed.closure, observed.measurement
             pose = (float(x[seq]), float(y[seq]), float(heading[seq]))
-            step = Step(seq, float(frame.stamp), pose, match.template_id,
-                        (closure.matched_template, closure.matched_frame) if closure else None)
+            closure_input = None
+            if closure is not None:
+                m = measurement
+                closure_input = ClosureInput(closure.matched_template, closure.matched_frame,
+                                             m.method if m.method != "none" else "", m.forward, m.left, m.yaw,
+                                             m.covariance, closure.votes, m.inliers, m.error)
+            step = Step(seq, float(frame.stamp), pose, match.template_id, closure_input)
             if map_store is not None:
                 map_store.append(step)
             steps.append(step)
-            state = MapState(experience_map.poses.copy(), list(experience_map.links)) if before is None else None
+            state = experience_map.snapshot() if before is None else None
             result = step.apply(experience_map)
-            if before is None and any(link.loop_closure for link in result.new_links):
+            if before is None and any(link.loop_closure and link.accepted for link in result.new_links):
                 before = state
             if closure is not None:
                 closures.append(closure)
             for name, value in (("frames", seq), ("template_ids", match.template_id), ("is_new", match.is_new),
                                 ("distances", match.distance), ("matched_frames", match.matched_frame),
-                                ("possible", not match.is_new and seq - match.matched_frame >= consistency.recent_frames),
+                                ("possible", not match.is_new and seq - match.matched_frame >= recent_frames),
                                 ("experiences", result.experience)):
                 columns[name].append(value)
     finally:
@@ -199,7 +199,7 @@ def build_map(images: Iterable, odometry: Trajectory, templates: TemplateParams,
         if len(reference) < len(x):
             raise EvidenceError(f"the reference path has {len(reference)} poses, the odometry {len(x)}")
         reference = reference.select(arrays["frames"])
-    return OfflineMap(**arrays, closures=closures, experience_map=experience_map, template_count=len(view_templates),
+    return OfflineMap(**arrays, closures=closures, experience_map=experience_map, template_count=len(detector.templates),
                       steps=steps, before=before, reference=reference)
 
 
@@ -239,10 +239,13 @@ def _draw_map(axes, poses: np.ndarray, links: list[Link], odometry: np.ndarray |
     for link in links:
         a, b = poses[link.source], poses[link.target]
         axes.plot([a[0], b[0]], [a[1], b[1]], color="C3" if link.loop_closure else "C0",
-                  linewidth=2.0 if link.loop_closure else 0.8)
+                  linewidth=2.0 if link.loop_closure and link.accepted else 0.8,
+                  linestyle="-" if link.accepted else ":")
     axes.plot(poses[:, 0], poses[:, 1], ".", color="C0", markersize=4, label=f"{len(poses)} experiences")
     axes.plot([], [], color="C0", linewidth=0.8, label="odometric link")
     axes.plot([], [], color="C3", linewidth=2.0, label="loop-closure link")
+    if any(not link.accepted for link in links):
+        axes.plot([], [], color="C3", linewidth=0.8, linestyle=":", label="closure the map refused")
     axes.plot(poses[0, 0], poses[0, 1], "o", color="black", markersize=6, label="first experience")
     axes.set_aspect("equal", adjustable="datalim")
     axes.grid(True, alpha=0.3)
@@ -265,7 +268,7 @@ def plot_map_correction(png_path, run: OfflineMap, title: str = "") -> Path | No
     else:
         left.set_title("no loop-closure link: the map is the odometry")
     final = run.experience_map
-    _draw_map(middle, final.poses, final.links, None, f"after relaxation (end of run, {len(final)} experiences)")
+    _draw_map(middle, final.final_poses(), final.links, None, f"the final map (end of run, {len(final)} experiences)")
     corrected = run.corrected_trajectory().positions
     if run.reference is not None:
         right.plot(run.reference.positions[:, 0], run.reference.positions[:, 1], "--", color="black", linewidth=1.0,
@@ -315,15 +318,15 @@ def write_build(folder: Path, run: OfflineMap, radius: float, config: dict, titl
     return files
 
 
-def sweep(images: list, odometry: Trajectory, templates: TemplateParams, consistency: ConsistencyParams,
-          map_params: MapParams, thresholds: list[float], tolerances: list[int], radius: float,
-          reference: Trajectory | None = None) -> list[dict]:
-    """One build per (match threshold, tolerance): what each finds, true and false."""
+def sweep(images: list, odometry: Trajectory, loopclosure, map_params: MapParams, thresholds: list[float],
+          tolerances: list[int], radius: float, reference: Trajectory | None = None) -> list[dict]:
+    """One build per (match threshold, tolerance) of the loop-closure config `loopclosure`
+    (services.loopclosure.service.LoopClosureConfig): what each finds, true and false."""
     rows = []
     for tolerance in tolerances:
         for threshold in thresholds:
-            run = build_map(images, odometry, replace(templates, match_threshold=threshold),
-                            replace(consistency, tolerance=tolerance), map_params, reference=reference)
+            detector = loopclosure.model_copy(update={"match_threshold": threshold, "tolerance": tolerance}).detector()
+            run = build_map(images, odometry, detector, map_params, reference=reference)
             summary = run.summary(radius)
             first = summary["first_confirmed"]
             rows.append({"match_threshold": threshold, "tolerance": tolerance, "view_templates": summary["view_templates"],

@@ -22,12 +22,12 @@ from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.graph import ExperienceMap, MapParams
-from services.expmap.store import FORMAT, Step
+from services.expmap.store import FORMAT, VERSION, Step
 
 log = logging.getLogger(__name__)
 
 GRAPH_FORMAT = "gridslam-experience-graph"
-GRAPH_VERSION = 1
+GRAPH_VERSION = 2
 
 
 class MapExportError(DataError):
@@ -67,20 +67,22 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
     if params is not None and params != logged:
         raise MapExportError(f"{path}: the map was built with parameters {asdict(logged)}, not {asdict(params)}; "
                              "export it with the same preset or config (or with neither: the log's own)")
+    if records[0].get("version") != VERSION:
+        raise MapExportError(f"{path}: a version {records[0].get('version')} map log; this gridslam reads version {VERSION}")
     steps = []
     for number, record in enumerate(records[1:], start=2):
         try:
-            closure = record["closure"]
-            steps.append(Step(int(record["frame"]), float(record["stamp"]), tuple(float(v) for v in record["odometry"]),
-                              int(record["template"]), (int(closure[0]), int(closure[1])) if closure else None))
+            steps.append(Step.from_record(record))
         except (KeyError, TypeError, ValueError, IndexError):
             raise MapExportError(f"{path}: line {number}: not a map record") from None
     return MapLog(path, logged, steps, torn)
 
 
 def graph_dict(experience_map: ExperienceMap) -> dict:
-    """The map as a graph: experiences (map pose, template, frame of creation) and links
-    (odometric transform from source to target, the frame that made it, loop_closure flag)."""
+    """The map as a graph: experiences (final map pose, template, frame of creation) and links
+    (transform from source to target, the frame that made it, loop_closure, and accepted: false
+    for a closure the map refused)."""
+    poses = experience_map.final_poses()
     return {
         "format": GRAPH_FORMAT,
         "version": GRAPH_VERSION,
@@ -88,7 +90,7 @@ def graph_dict(experience_map: ExperienceMap) -> dict:
         "frames": len(experience_map.frames),
         "experiences": [{"id": i, "x": float(x), "y": float(y), "heading": float(heading),
                          "template_id": experience_map.templates[i], "frame": experience_map.created[i]}
-                        for i, (x, y, heading) in enumerate(experience_map.poses)],
+                        for i, (x, y, heading) in enumerate(poses)],
         "links": [asdict(link) for link in experience_map.links],
     }
 

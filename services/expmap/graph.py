@@ -6,14 +6,27 @@ frame's view template id, and a confirmed loop closure when there is one:
 - The robot is always "at" a current experience, at an offset (in that experience's frame)
   given by the odometry travelled since it was last there.
 - A new experience is made when that offset exceeds `new_experience_distance` or the view
-  template changes; it is linked from the current one by the offset.
-- A confirmed loop closure links the current experience to the experience of the matched
-  template (the one made at the matched frame, else the latest with that template) by the
-  offset, and makes that experience current: the robot is where it was before.
-- Relaxation (RatSLAM's graph relaxation): every link pulls both of its ends toward agreement
-  with the link's transform by `correction` (0.5, as in RatSLAM) of the disagreement; headings
-  are relaxed the same way. All links act at once and a node's pulls are averaged over its
-  links, so the result does not depend on link order and the vectorised update is stable.
+  template changes; it is linked from the current one by the offset (an odometric link).
+- A confirmed loop closure links the current experience to the experience made at the matched
+  frame. What the link asserts depends on `closure`:
+  - `metric` (default): the relative pose the images measured between the matched frame and
+    the current one, with its uncertainty (services/loopclosure/geometry.py). The robot stays
+    at its own experience; the closure is a measurement the optimiser weighs.
+  - `ratslam`: the paper's snap-to-experience: the robot *is* at the matched experience (the
+    link carries the odometric offset), and that experience becomes current.
+- The optimiser (`optimizer`) places the experiences:
+  - `gtsam` (default): a pose graph solved incrementally by iSAM2 (optimizers.PoseGraph), with
+    odometric links weighted by the distance they span and closure links under a robust kernel.
+    After solving, a closure whose residual is still beyond `closure_gate` standard deviations
+    is refused: the odometry contradicts it. Its link stays in the map as evidence
+    (`accepted=False`) but is taken out of the graph, so it does not bend the map.
+  - `ratslam`: RatSLAM's graph relaxation (optimizers.Relaxation); every closure is accepted.
+
+A frame's cost does not grow with the map under `gtsam`: experiences are found by dictionaries,
+links are appended, the solver's update touches what a closure affects, and the published poses
+are refreshed for what the solver re-eliminated plus a fixed number of others per frame
+(optimizers.REFRESH_PER_FRAME), so every experience is refreshed within a bounded number of
+frames. `final_poses()` gives every experience's best estimate (for exports).
 
 Everything is deterministic: the same inputs in the same order give the same map, which is
 what lets a restarted service rebuild its map by replaying the log of its inputs.
@@ -21,6 +34,7 @@ what lets a restarted service rebuild its map by replaying the log of its inputs
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -28,22 +42,57 @@ import numpy as np
 
 from services.common.errors import ConfigError
 
+OPTIMIZERS = ("gtsam", "ratslam")
+CLOSURES = ("metric", "ratslam")
+KERNELS = ("cauchy", "geman_mcclure", "dcs", "huber", "none")
+METHODS = ("stereo", "mono", "scanline")
+
 
 @dataclass(frozen=True)
 class MapParams:
     new_experience_distance: float = 1.0   # metres of odometry before a new experience
+    optimizer: str = "gtsam"               # gtsam (pose graph, iSAM2) or ratslam (relaxation)
+    closure: str = "metric"                # metric (measured relative pose) or ratslam (snap to the experience)
+    # RatSLAM relaxation (optimizer = ratslam)
     correction: float = 0.5                # RatSLAM's correction factor
     relax_passes: int = 10                 # relaxation passes per frame after a loop closure
     relax_every_frame: int = 1             # passes on frames without a loop closure
+    # Pose graph (optimizer = gtsam). The odometry's uncertainty comes with it (each frame's
+    # increment covariance, from the ego-motion estimator through the integrator); for a frame
+    # without one, its standard deviations are modelled from the frame's motion:
+    odometry_translation_sigma: float = 0.05   # metres per metre travelled in the frame
+    odometry_heading_sigma: float = 0.01       # radians per metre travelled in the frame
+    odometry_turn_sigma: float = 0.05          # radians per radian turned in the frame
+    odometry_translation_floor: float = 0.005  # metres added to every link's standard deviation
+    odometry_heading_floor: float = 0.001      # radians added to every link's standard deviation
+    # Closures: a snapped closure (closure = ratslam) asserts the robot is at the experience, within these
+    snap_translation_sigma: float = 0.5    # metres
+    snap_heading_sigma: float = 0.2        # radians
+    mono_scale_sigma: float = 0.5          # a monocular closure's translation length: this fraction of the odometry's
+    robust_kernel: str = "cauchy"          # on closure links: cauchy, geman_mcclure, dcs, huber or none
+    kernel_width: float = 1.0              # the kernel's constant, in standard deviations of the closure
+    closure_gate: float = 3.0              # refuse a closure whose residual after solving exceeds this (std devs)
+    closure_iterations: int = 4            # extra solver iterations on a frame with a closure
 
     def check(self) -> None:
-        for name, ok in (("new_experience_distance", self.new_experience_distance > 0),
-                         ("correction", 0 < self.correction <= 1), ("relax_passes", self.relax_passes >= 0),
-                         ("relax_every_frame", self.relax_every_frame >= 0)):
+        rules = (("new_experience_distance", self.new_experience_distance > 0), ("optimizer", self.optimizer in OPTIMIZERS),
+                 ("closure", self.closure in CLOSURES), ("correction", 0 < self.correction <= 1),
+                 ("relax_passes", self.relax_passes >= 0), ("relax_every_frame", self.relax_every_frame >= 0),
+                 ("odometry_translation_sigma", self.odometry_translation_sigma >= 0),
+                 ("odometry_heading_sigma", self.odometry_heading_sigma >= 0),
+                 ("odometry_turn_sigma", self.odometry_turn_sigma >= 0),
+                 ("odometry_translation_floor", self.odometry_translation_floor > 0),
+                 ("odometry_heading_floor", self.odometry_heading_floor > 0),
+                 ("snap_translation_sigma", self.snap_translation_sigma > 0), ("snap_heading_sigma", self.snap_heading_sigma > 0),
+                 ("mono_scale_sigma", self.mono_scale_sigma > 0), ("robust_kernel", self.robust_kernel in KERNELS),
+                 ("kernel_width", self.kernel_width > 0), ("closure_gate", self.closure_gate > 0),
+                 ("closure_iterations", self.closure_iterations >= 0))
+        for name, ok in rules:
             if not ok:
                 raise ConfigError(f"experience map: invalid {name} = {getattr(self, name)!r}")
 
 
+# --- planar poses (x, y, heading) ---------------------------------------------------------------
 def wrap(angle):
     return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
 
@@ -63,8 +112,23 @@ def between(a: tuple[float, float, float], b: tuple[float, float, float]) -> tup
     return c * dx + s * dy, -s * dx + c * dy, float(wrap(b[2] - a[2]))
 
 
+def inverse(pose: tuple[float, float, float]) -> tuple[float, float, float]:
+    return between(pose, (0.0, 0.0, 0.0))
+
+
+def adjoint(pose: tuple[float, float, float]) -> np.ndarray:
+    """SE(2) adjoint: carries a right-hand tangent perturbation across `pose`
+    (pose ∘ Exp(ε) = Exp(Ad ε) ∘ pose); tangent order (x, y, heading)."""
+    x, y, th = pose
+    c, s = math.cos(th), math.sin(th)
+    return np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
+
+
+# --- links and closures ---------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Link:
+    """An edge: the pose of `target` in `source`'s frame (dx, dy, dheading)."""
+
     source: int
     target: int
     dx: float
@@ -72,6 +136,35 @@ class Link:
     dheading: float
     frame: int
     loop_closure: bool = False
+    accepted: bool = True       # False: a closure the map refused (kept as evidence, not optimised)
+
+    @property
+    def transform(self) -> tuple[float, float, float]:
+        return self.dx, self.dy, self.dheading
+
+
+@dataclass(frozen=True)
+class ClosureInput:
+    """A confirmed loop closure as the map takes it: the matched place, and (for metric
+    closures) the pose of the current frame in the matched frame's body frame with its 3×3
+    covariance (forward, left, yaw), row-major. `method` is how it was measured: stereo, mono
+    (forward/left a unit direction: the length comes from the odometry) or scanline; an empty
+    method means no measurement (its geometry failed): the map does not use it."""
+
+    matched_template: int
+    matched_frame: int
+    method: str = ""
+    forward: float = 0.0
+    left: float = 0.0
+    yaw: float = 0.0
+    covariance: tuple[float, ...] = ()
+    votes: int = 0                 # evidence only (loop_closures.csv): the consistency rule's votes,
+    inliers: int = 0               # the feature matches behind the measurement,
+    geometry_error: str = ""       # why there is no measurement
+
+    @property
+    def measured(self) -> bool:
+        return self.method in METHODS and len(self.covariance) == 9
 
 
 @dataclass
@@ -83,97 +176,214 @@ class FrameResult:
     pose: tuple[float, float, float]          # the robot's map pose
     new_experiences: list[int] = field(default_factory=list)
     new_links: list[Link] = field(default_factory=list)
-    moved: list[int] = field(default_factory=list)   # experiences moved by relaxation beyond 1 mm / 0.1 mrad
+    moved: list[int] = field(default_factory=list)   # experiences moved by the optimiser beyond 1 mm / 0.1 mrad
+    closure: str | None = None                # this frame's closure: accepted, rejected, unmeasured, unmatched
+    residual: float | None = None             # the closure's residual after solving, standard deviations
+
+
+@dataclass(frozen=True, eq=False)
+class MapState:
+    """A consistent copy of the map's published state (for snapshots)."""
+
+    frame: int | None
+    poses: np.ndarray
+    templates: list[int]
+    created: list[int]
+    links: list[Link]
+
+
+MOVED = np.array([1e-3, 1e-3, 1e-4])   # what counts as moved: 1 mm, 0.1 mrad
+IDENTITY = (0.0, 0.0, 0.0)
 
 
 class ExperienceMap:
     def __init__(self, params: MapParams = MapParams()):
         params.check()
         self.params = params
-        self.poses = np.zeros((0, 3))                   # experience map poses (x, y, heading)
+        self._poses = np.zeros((64, 3))                 # published experience poses (x, y, heading), first len(self) rows
         self.templates: list[int] = []
         self.created: list[int] = []                    # frame of creation
         self.links: list[Link] = []
         self.current: int | None = None
         self.anchor: tuple[float, float, float] | None = None   # odometry pose when last at `current`
+        self.last_odometry: tuple[float, float, float] | None = None
+        self.offset_covariance = np.zeros((3, 3))       # of the offset from `current` (right-hand tangent)
         self.frames: list[tuple[int, int, tuple[float, float, float]]] = []   # (frame, experience, offset)
         self.last_frame: int | None = None
+        self.closures = {"accepted": 0, "rejected": 0, "unmeasured": 0, "unmatched": 0}
+        self.decisions: list[tuple[int, int, str]] = []   # (frame, matched frame, what became of its closure)
+        self._frame_at: dict[int, int] = {}             # frame → its row of `frames`
+        self._by_template: dict[int, int] = {}          # template → its latest experience
+        from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
+        self.optimizer = PoseGraph(self) if params.optimizer == "gtsam" else Relaxation(self)
 
     def __len__(self) -> int:
         return len(self.templates)
 
+    @property
+    def poses(self) -> np.ndarray:
+        """The published experience poses (E, 3), as of the last frame (a view, not a copy)."""
+        return self._poses[:len(self.templates)]
+
     def step(self, frame: int, odometry: tuple[float, float, float], template_id: int,
-             closure: tuple[int, int] | None = None) -> FrameResult:
-        """Apply one frame: odometry pose (x, y, heading), its view template, and an optional
-        confirmed closure (matched_template, matched_frame)."""
+             closure: ClosureInput | None = None, covariance: tuple[float, ...] | None = None) -> FrameResult:
+        """Apply one frame: odometry pose (x, y, heading), its view template, an optional
+        confirmed closure, and the covariance (3×3 row-major, forward, left, yaw) of the
+        odometry's increment since the previous frame, when the odometry knows it."""
         if not all(math.isfinite(v) for v in odometry):
             raise ValueError(f"frame {frame}: odometry pose {odometry} is not finite")
-        before = self.poses.copy()
         result = FrameResult(frame, -1, (0.0, 0.0, 0.0))
         if self.current is None:
             self._add_experience(odometry, template_id, frame, result)   # the map starts as the odometry frame
             self.current, self.anchor = 0, odometry
+        else:
+            self._accumulate(between(self.last_odometry, odometry), covariance)
+        self.last_odometry = odometry
         offset = between(self.anchor, odometry)
-        passes = self.params.relax_every_frame
-        if closure is not None:
-            target = self._experience_of(*closure)
-            if target is not None and target != self.current:
-                self._link(self.current, target, offset, frame, True, result)
-                self.current, self.anchor, offset = target, odometry, (0.0, 0.0, 0.0)
-                passes = self.params.relax_passes
+        target, matched_offset = self._place_of(closure) if closure is not None else (None, None)
+        if closure is not None and target is None:
+            result.closure = "unmatched"
+        if target is not None and self.params.closure == "ratslam":   # the robot is where the matched frame was
+            link = self._closure_link(self.current, target, offset, IDENTITY, matched_offset, frame)
+            if self._decide(link, self._snap_covariance(), result):
+                self._move_to(target, compose(odometry, inverse(matched_offset)))
+                offset = matched_offset
         if math.hypot(offset[0], offset[1]) > self.params.new_experience_distance or \
                 template_id != self.templates[self.current]:
-            new = self._add_experience(compose(tuple(self.poses[self.current]), offset), template_id, frame, result)
-            self._link(self.current, new, offset, frame, False, result)
-            self.current, self.anchor, offset = new, odometry, (0.0, 0.0, 0.0)
-        self.relax(passes)
-        moved = np.flatnonzero((np.abs(self.poses[:len(before)] - before) > [1e-3, 1e-3, 1e-4]).any(axis=1))
-        result.moved = [int(i) for i in moved if i not in result.new_experiences]
+            new = self._add_experience(compose(tuple(self._poses[self.current]), offset), template_id, frame, result)
+            link = Link(self.current, new, *offset, frame)
+            self.optimizer.add_link(link, self._link_covariance())
+            self._add_link(link, result)
+            self._move_to(new, odometry)
+            offset = (0.0, 0.0, 0.0)
+        if target is not None and self.params.closure == "metric":
+            if not closure.measured:
+                result.closure = "unmeasured"
+            elif target != self.current:
+                measurement, covariance = self._measurement(closure, target, matched_offset, offset)
+                self._decide(self._closure_link(self.current, target, offset, measurement, matched_offset, frame),
+                             covariance, result)
+        if result.closure is not None:
+            self.closures[result.closure] += 1
+            self.decisions.append((frame, closure.matched_frame, result.closure))
+        moved = self.optimizer.solve(closure_frame=result.closure in ("accepted", "rejected"))
+        result.moved = [i for i in moved if i not in result.new_experiences]
         result.experience = self.current
-        result.pose = compose(tuple(self.poses[self.current]), offset)
+        result.pose = compose(tuple(self._poses[self.current]), offset)
+        self._frame_at[frame] = len(self.frames)
         self.frames.append((frame, self.current, offset))
         self.last_frame = frame
         return result
 
-    def relax(self, passes: int) -> None:
-        if not self.links or passes <= 0:
-            return
-        source = np.array([link.source for link in self.links])
-        target = np.array([link.target for link in self.links])
-        offset = np.array([(link.dx, link.dy, link.dheading) for link in self.links])
-        degree = np.bincount(np.concatenate([source, target]), minlength=len(self.poses)).astype(float)
-        degree[degree == 0] = 1
-        for _ in range(passes):
-            start = self.poses[source]
-            c, s = np.cos(start[:, 2]), np.sin(start[:, 2])
-            predicted = np.column_stack([start[:, 0] + c * offset[:, 0] - s * offset[:, 1],
-                                         start[:, 1] + s * offset[:, 0] + c * offset[:, 1],
-                                         start[:, 2] + offset[:, 2]])
-            error = predicted - self.poses[target]
-            error[:, 2] = wrap(error[:, 2])
-            pull = np.zeros_like(self.poses)
-            np.add.at(pull, target, error * self.params.correction)
-            np.add.at(pull, source, -error * self.params.correction)
-            self.poses += pull / degree[:, None]
-            self.poses[:, 2] = wrap(self.poses[:, 2])
-
     def trajectory(self) -> list[tuple[int, float, float, float]]:
-        """(frame, x, y, heading) of every frame, placed on the current (relaxed) map."""
-        return [(frame, *compose(tuple(self.poses[experience]), offset)) for frame, experience, offset in self.frames]
+        """(frame, x, y, heading) of every frame, placed on the final map (`final_poses`)."""
+        poses = self.final_poses()
+        return [(frame, *compose(tuple(poses[experience]), offset)) for frame, experience, offset in self.frames]
 
-    def _experience_of(self, matched_template: int, matched_frame: int) -> int | None:
-        candidates = [i for i, t in enumerate(self.templates) if t == matched_template]
-        at_frame = [i for i in candidates if self.created[i] == matched_frame]
-        return (at_frame or candidates or [None])[-1]
+    def final_poses(self) -> np.ndarray:
+        """Every experience's best estimate (E, 3); costs a pass over the map (for exports, not per frame)."""
+        return self.optimizer.estimate()
 
+    def snapshot(self) -> MapState:
+        """A copy of the published state; the caller serialises it outside its lock."""
+        count = len(self.templates)
+        return MapState(self.last_frame, self._poses[:count].copy(), self.templates[:count], self.created[:count],
+                        self.links[:])
+
+    # --- closures ---------------------------------------------------------------------------------
+    def _place_of(self, closure: ClosureInput) -> tuple[int | None, tuple[float, float, float] | None]:
+        """Where the matched frame was: the experience the robot was at then and its offset from
+        it; a frame the map never had falls back to the latest experience of the matched template."""
+        index = self._frame_at.get(closure.matched_frame)
+        if index is not None:
+            _, experience, offset = self.frames[index]
+            return experience, offset
+        experience = self._by_template.get(closure.matched_template)
+        return (experience, IDENTITY) if experience is not None else (None, None)
+
+    @staticmethod
+    def _closure_link(current: int, target: int, offset, measurement, matched_offset, frame: int) -> Link:
+        """The link current → target when the current frame, at `offset` from `current`, sits at
+        `measurement` from the matched frame, at `matched_offset` from `target`:
+        offset ∘ measurement⁻¹ ∘ matched_offset⁻¹."""
+        transform = compose(compose(offset, inverse(measurement)), inverse(matched_offset))
+        return Link(current, target, *transform, frame, loop_closure=True)
+
+    def _decide(self, link: Link, covariance: np.ndarray, result: FrameResult) -> bool:
+        accepted, residual = self.optimizer.add_closure(link, covariance)
+        self._add_link(dataclasses.replace(link, accepted=accepted), result)
+        result.closure = "accepted" if accepted else "rejected"
+        result.residual = residual
+        return accepted
+
+    def _measurement(self, closure: ClosureInput, target: int, matched_offset, offset) -> tuple[tuple[float, float, float], np.ndarray]:
+        """The measured pose of the current frame in the matched frame's, and the covariance of the
+        link current → target that carries it (right-hand tangent perturbation, the convention of
+        the pose graph's factors)."""
+        covariance = np.array(closure.covariance, dtype=float).reshape(3, 3)
+        forward, left = closure.forward, closure.left
+        if closure.method == "mono":   # a direction: its length from the map's own estimate
+            frame_pose = compose(tuple(self._poses[self.current]), offset)
+            matched_pose = compose(tuple(self._poses[target]), matched_offset)
+            length = math.hypot(*between(matched_pose, frame_pose)[:2])
+            norm = math.hypot(forward, left) or 1.0
+            forward, left = forward / norm * length, left / norm * length
+            along = np.array([forward, left]) / max(length, 1e-9)
+            covariance = covariance.copy()
+            covariance[:2, :2] = covariance[:2, :2] * length ** 2 + \
+                np.outer(along, along) * (self.params.mono_scale_sigma * length) ** 2
+        measurement = (forward, left, closure.yaw)
+        # Component noise of the measurement → right tangent: rotate the translation part into its frame.
+        c, s = math.cos(closure.yaw), math.sin(closure.yaw)
+        to_tangent = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        # The odometry from the current experience to this frame (the offset) is uncertain too.
+        tangent = to_tangent @ covariance @ to_tangent.T + self.offset_covariance
+        # The link offset ∘ measurement⁻¹ ∘ matched⁻¹, with measurement ∘ Exp(δ) (or offset ∘ Exp(δ)), is the
+        # link ∘ Exp(∓Ad(matched ∘ measurement) δ).
+        carry = adjoint(compose(matched_offset, measurement))
+        return measurement, carry @ tangent @ carry.T
+
+    def _snap_covariance(self) -> np.ndarray:
+        p = self.params
+        return np.diag([p.snap_translation_sigma ** 2, p.snap_translation_sigma ** 2, p.snap_heading_sigma ** 2])
+
+    def _accumulate(self, increment, covariance) -> None:
+        """Carry the offset's covariance across one frame's increment and add the increment's:
+        (offset ∘ Exp(ε)) ∘ increment = (offset ∘ increment) ∘ Exp(Ad(increment⁻¹) ε)."""
+        if covariance is None:   # modelled from the frame's own motion
+            p = self.params
+            distance = math.hypot(increment[0], increment[1])
+            translation = p.odometry_translation_sigma * distance
+            heading = p.odometry_heading_sigma * distance + p.odometry_turn_sigma * abs(increment[2])
+            covariance = np.diag([translation ** 2, translation ** 2, heading ** 2])
+        else:
+            covariance = np.asarray(covariance, dtype=float).reshape(3, 3)
+        carry = adjoint(inverse(increment))
+        self.offset_covariance = carry @ self.offset_covariance @ carry.T + covariance
+
+    def _link_covariance(self) -> np.ndarray:
+        """An odometric link's covariance: the offset's, with the floors added."""
+        p = self.params
+        floor = np.diag([p.odometry_translation_floor ** 2, p.odometry_translation_floor ** 2, p.odometry_heading_floor ** 2])
+        return self.offset_covariance + floor
+
+    def _move_to(self, experience: int, odometry) -> None:
+        self.current, self.anchor = experience, odometry
+        self.offset_covariance = np.zeros((3, 3))
+
+    # --- growth -----------------------------------------------------------------------------------
     def _add_experience(self, pose, template_id: int, frame: int, result: FrameResult) -> int:
-        self.poses = np.vstack([self.poses, pose])
+        index = len(self.templates)
+        if index == len(self._poses):   # grow geometrically: amortised O(1) per experience
+            self._poses = np.concatenate([self._poses, np.zeros_like(self._poses)])
+        self._poses[index] = pose
         self.templates.append(template_id)
         self.created.append(frame)
-        result.new_experiences.append(len(self.templates) - 1)
-        return len(self.templates) - 1
+        self._by_template[template_id] = index
+        self.optimizer.add_experience(index, pose)
+        result.new_experiences.append(index)
+        return index
 
-    def _link(self, source: int, target: int, offset, frame: int, loop_closure: bool, result: FrameResult) -> None:
-        link = Link(source, target, float(offset[0]), float(offset[1]), float(offset[2]), frame, loop_closure)
+    def _add_link(self, link: Link, result: FrameResult) -> None:
         self.links.append(link)
         result.new_links.append(link)

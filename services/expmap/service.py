@@ -1,21 +1,28 @@
-"""expmap: the RatSLAM experience map of grid-cell odometry, view templates and loop closures."""
+"""expmap: the experience map of grid-cell odometry, view templates and loop closures: a pose
+graph (gtsam iSAM2) with metric closures by default, RatSLAM's relaxation and snap-to-experience
+as the paper's model (graph.py). Writes loop_closures.csv: every confirmed closure, its
+measurement and whether the map accepted it."""
 
 from __future__ import annotations
 
 import argparse
 import collections
+import csv
 import logging
+import threading
+from dataclasses import asdict
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, ViewTemplate
 from services.common.config import load_config
 from services.common.convert import planar_pose
-from services.common.errors import DataError
+from services.common.errors import DataError, PersistenceError
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.expmap.graph import ExperienceMap, FrameResult, MapParams
+from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
 from services.expmap.store import MapStore, Step
 
 log = logging.getLogger(__name__)
@@ -31,19 +38,46 @@ class MapInputError(DataError):
 
 
 class ExpMapConfig(BaseModel):
-    """Configuration of the expmap service (table `[expmap]`, env `GRIDSLAM_EXPMAP_*`, presets)."""
+    """Configuration of the expmap service (table `[expmap]`, env `GRIDSLAM_EXPMAP_*`, presets).
+    The map's keys are MapParams' (services/expmap/graph.py documents each)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     new_experience_distance: float = Field(1.0, gt=0, description="Metres of odometry before a new experience.")
-    correction: float = Field(0.5, gt=0, le=1, description="Relaxation correction factor (RatSLAM: 0.5).")
-    relax_passes: int = Field(10, ge=0, description="Relaxation passes on a frame with a loop closure.")
-    relax_every_frame: int = Field(1, ge=0, description="Relaxation passes on every other frame.")
+    optimizer: Literal["gtsam", "ratslam"] = Field(
+        "gtsam", description="gtsam: a pose graph solved by iSAM2; ratslam: RatSLAM's graph relaxation.")
+    closure: Literal["metric", "ratslam"] = Field(
+        "metric", description="metric: a closure carries the relative pose measured from the images; ratslam: the robot "
+                              "snaps to the matched experience (the paper's model).")
+    correction: float = Field(0.5, gt=0, le=1, description="Relaxation correction factor (RatSLAM: 0.5; optimizer ratslam).")
+    relax_passes: int = Field(10, ge=0, description="Relaxation passes on a frame with a loop closure (optimizer ratslam).")
+    relax_every_frame: int = Field(1, ge=0, description="Relaxation passes on every other frame (optimizer ratslam).")
+    odometry_translation_sigma: float = Field(
+        0.05, ge=0, description="A frame's odometry without a covariance: translation std dev per metre moved.")
+    odometry_heading_sigma: float = Field(
+        0.01, ge=0, description="A frame's odometry without a covariance: heading std dev per metre moved, rad.")
+    odometry_turn_sigma: float = Field(
+        0.05, ge=0, description="A frame's odometry without a covariance: heading std dev per radian turned.")
+    odometry_translation_floor: float = Field(0.005, gt=0, description="Added to every odometric link's translation std dev, m.")
+    odometry_heading_floor: float = Field(0.001, gt=0, description="Added to every odometric link's heading std dev, rad.")
+    snap_translation_sigma: float = Field(0.5, gt=0, description="closure ratslam: std dev of 'the robot is at the experience', m.")
+    snap_heading_sigma: float = Field(0.2, gt=0, description="closure ratslam: heading std dev of the snap, rad.")
+    mono_scale_sigma: float = Field(0.5, gt=0, description="A monocular closure's length: std dev as a fraction of the odometry's.")
+    robust_kernel: Literal["cauchy", "geman_mcclure", "dcs", "huber", "none"] = Field(
+        "cauchy", description="Robust kernel on closure factors (optimizer gtsam).")
+    kernel_width: float = Field(1.0, gt=0, description="The kernel's constant, in standard deviations of the closure.")
+    closure_gate: float = Field(
+        3.0, gt=0, description="Refuse a closure whose innovation exceeds this many standard deviations (optimizer gtsam).")
+    closure_iterations: int = Field(4, ge=0, description="Extra solver iterations on a frame with an accepted closure.")
     store: Path = Field(Path("experience_map.log"), description="Append-only map log; a restart resumes from it.")
+    out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
 
     def params(self) -> MapParams:
-        return MapParams(new_experience_distance=self.new_experience_distance, correction=self.correction,
-                         relax_passes=self.relax_passes, relax_every_frame=self.relax_every_frame)
+        return MapParams(**self.model_dump(exclude={"store", "out"}))
+
+
+CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "measurement", "forward", "left", "yaw",
+                   "inliers", "geometry_error", "innovation", "accepted")
 
 
 def experience_message(experience_map: ExperienceMap, index: int) -> Experience:
@@ -53,8 +87,17 @@ def experience_message(experience_map: ExperienceMap, index: int) -> Experience:
 
 
 def link_message(link) -> Link:
-    return Link(source=link.source, target=link.target, dx=link.dx, dy=link.dy, dheading=link.dheading,
-                frame=link.frame, loop_closure=link.loop_closure)
+    return Link(**asdict(link))
+
+
+def closure_input(message: LoopClosure) -> ClosureInput:
+    """The map's view of a confirmed closure: the matched place and the measurement, if any."""
+    evidence = {"votes": message.votes, "inliers": message.inliers, "geometry_error": message.geometry_error}
+    pose = message.relative_pose
+    if message.measurement == "none" or pose is None or message.covariance is None:
+        return ClosureInput(message.matched_template, message.matched_frame, **evidence)
+    return ClosureInput(message.matched_template, message.matched_frame, message.measurement, pose.forward, pose.left,
+                        pose.yaw, tuple(message.covariance), **evidence)
 
 
 class ExpMapService(Service):
@@ -65,10 +108,21 @@ class ExpMapService(Service):
         self.config = config
         self.store = MapStore(config.store, config.params())
         self.map = ExperienceMap(config.params())
+        self.lock = threading.Lock()   # map/snapshot reads on a Zenoh thread while frames are applied
         # Results of the last frames, to answer a re-sent frame that is already in the map.
         self.recent: collections.OrderedDict[int, FrameResult] = collections.OrderedDict()
+        self.csv_path = config.out / "loop_closures.csv" if config.out else None
+        rows = []
         for step in self.store.steps:
-            self._remember(step.apply(self.map))
+            result = step.apply(self.map)
+            self._remember(result)
+            rows += self._closure_rows(step, result)
+        if self.csv_path is not None:   # written afresh from the journal: a crash never leaves it behind
+            try:
+                self.csv_path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as error:
+                raise PersistenceError(f"{self.csv_path.parent}: cannot create ({error.strerror or error})") from None
+            self._write_closures(rows, "w")
         if self.store.steps:
             log.info("expmap resumed from %s: %d frames, %d experiences, %d links", config.store,
                      len(self.store.steps), len(self.map), len(self.map.links))
@@ -127,10 +181,14 @@ class ExpMapService(Service):
                     self._publish_pose(pose, self.recent[seq])
                 continue
             step = Step(seq, pose.header.stamp.to_seconds(), (pose.pose.position.x, pose.pose.position.y, pose.heading),
-                        view.template_id, (closure.matched_template, closure.matched_frame) if closure else None)
+                        view.template_id, closure_input(closure) if closure else None,
+                        tuple(pose.increment_covariance) if pose.increment_covariance is not None else None)
             self.store.append(step)   # on disk before anything is published
-            result = step.apply(self.map)
+            with self.lock:
+                result = step.apply(self.map)
             self._remember(result)
+            if self.csv_path is not None and result.closure is not None:
+                self._write_closures(self._closure_rows(step, result), "a")
             self._publish(pose, result)
 
     def _publish(self, pose: GridPose, result: FrameResult) -> None:
@@ -155,24 +213,61 @@ class ExpMapService(Service):
             self.recent.popitem(last=False)
 
     def snapshot(self) -> MapSnapshot:
-        # Called on a Zenoh thread: read a consistent copy (lists are only appended to).
-        count, links = len(self.map), list(self.map.links)
-        last = self.map.last_frame or 0
-        return MapSnapshot(header=self.header(last, 0.0, "map"),
-                           experiences=[experience_message(self.map, i) for i in range(count)],
-                           links=[link_message(link) for link in links])
+        """Called on a Zenoh thread: the map as of one frame, copied under the lock, serialised outside it."""
+        with self.lock:
+            state: MapState = self.map.snapshot()
+        return MapSnapshot(header=self.header(state.frame or 0, 0.0, "map"),
+                           experiences=[Experience(id=i, x=float(x), y=float(y), heading=float(heading),
+                                                   template_id=state.templates[i], frame=state.created[i])
+                                        for i, (x, y, heading) in enumerate(state.poses)],
+                           links=[link_message(link) for link in state.links])
+
+    @staticmethod
+    def _closure_rows(step: Step, result: FrameResult) -> list[tuple]:
+        """loop_closures.csv's row of a frame whose closure the map decided on (none otherwise)."""
+        if result.closure is None:
+            return []
+        c = step.closure
+        return [(step.frame, c.matched_frame, c.matched_template, c.votes, c.method or "none", f"{c.forward:.4f}",
+                 f"{c.left:.4f}", f"{c.yaw:.5f}", c.inliers, c.geometry_error,
+                 "" if result.residual is None else f"{result.residual:.3f}", str(result.closure == "accepted").lower())]
+
+    def _write_closures(self, rows: list[tuple], mode: str) -> None:
+        try:
+            with open(self.csv_path, mode, newline="") as handle:
+                writer = csv.writer(handle)
+                if mode == "w":
+                    writer.writerow(CLOSURE_COLUMNS)
+                writer.writerows(rows)
+        except OSError as error:
+            raise PersistenceError(f"{self.csv_path}: cannot write ({error.strerror or error})") from None
 
     def extra_counters(self) -> dict[str, float]:
+        closures = self.map.closures
         return {**super().extra_counters(), "experiences": len(self.map), "links": len(self.map.links),
-                "frames_in_map": len(self.map.frames), "frames_skipped": self.skipped}
+                "frames_in_map": len(self.map.frames), "frames_skipped": self.skipped,
+                "closures_accepted": closures["accepted"], "closures_rejected": closures["rejected"],
+                "closures_unmeasured": closures["unmeasured"]}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", help="map parameters for a dataset: synthetic, nubot, kitti, stlucia")
     parser.add_argument("--store", type=Path, help="map log file (default experience_map.log); a restart resumes from it")
+    parser.add_argument("--out", type=Path, help="folder for loop_closures.csv")
+    add_map_arguments(parser)
+
+
+def add_map_arguments(parser: argparse.ArgumentParser) -> None:
+    """The map's model, shared by every command that builds a map (run, demo, map build, the service)."""
+    parser.add_argument("--closure", choices=["metric", "ratslam"],
+                        help="what a closure asserts: the measured relative pose (metric, default) or that the robot "
+                             "is at the matched experience (ratslam)")
+    parser.add_argument("--map-optimizer", choices=["gtsam", "ratslam"],
+                        help="what places the experiences: a pose graph (gtsam, default) or RatSLAM's relaxation")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(ExpMapConfig, "expmap", preset=args.preset, config_file=args.config,
-                         overrides={"store": args.store})
+                         overrides={"store": args.store, "out": args.out, "closure": args.closure,
+                                    "optimizer": args.map_optimizer})
     return ExpMapService(runtime, config, args.instance).run()

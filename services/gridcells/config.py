@@ -20,6 +20,9 @@ class GridCellsConfig(BaseModel):
     typical_speed: float = Field(
         0.5, gt=0, description="Typical distance travelled per frame in metres, used by velocity_scale = auto.")
     neurons: int = Field(128, ge=16, le=512, description="Side n of the n×n network.")
+    direction_sigma: float = Field(
+        0.04, ge=0, description="Standard deviation of the direction of travel read from the lattice, radians per frame: "
+                                "added (as sideways error of the step) to the ego-motion's covariance in grid/pose.")
     activity_every: int = Field(5, ge=0, description="Publish grid/activity every this many frames (0: never).")
     activity_size: int = Field(64, ge=8, le=512, description="Side of the downsampled activity image.")
     checkpoint: Path | None = Field(

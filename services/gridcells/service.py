@@ -99,6 +99,7 @@ class GridCellsService(Service):
             header=header, pose=planar_pose(step.pose.x, step.pose.y, step.pose.heading), twist=twist,
             heading=step.pose.heading, lattice_shift=step.shift, step_length=step.step_length,
             saturated=step.saturated, integrator=self.config.integrator,
+            increment_covariance=self.increment_covariance(message.covariance, step.step_length),
         ))
         if self.config.checkpoint is not None:
             save_checkpoint(self.config.checkpoint, self.integrator.checkpoint(), message.header.seq, stamp)
@@ -106,6 +107,14 @@ class GridCellsService(Service):
         every = self.config.activity_every
         if every and self.config.integrator == "grid" and self.frames % every == 0:
             self.publish("grid/activity", self.activity(header, step.shift))
+
+    def increment_covariance(self, covariance: list[float] | None, step_length: float) -> list[float] | None:
+        """The ego-motion's covariance of the increment, plus (for the network) the sideways error
+        of a step whose direction is read from the lattice."""
+        if covariance is None or self.config.integrator != "grid":
+            return covariance
+        sideways = (step_length * self.config.direction_sigma) ** 2
+        return [value + (sideways if index == 4 else 0.0) for index, value in enumerate(covariance)]
 
     def activity(self, header, shift) -> GridActivity:
         field = np.asarray(self.integrator.activity, dtype=np.float32)

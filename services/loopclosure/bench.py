@@ -1,16 +1,22 @@
-"""`gridslam bench loopclosure`: cost per frame of ViewTemplates.observe as templates accumulate.
+"""`gridslam bench loopclosure`: cost per frame of ViewTemplates.observe as templates accumulate,
+and what the index finds against the exhaustive search.
 
-With N stored templates (N = 1k, 10k, 50k by default) a frame is observed by the default
-matcher (a column-profile prefilter over all N, then `candidates` full-patch comparisons) and
-by an exhaustive one (every template compared patch to patch at every shift: the same class
-with `candidates` >= N). Both get the same store and the same frames; the table gives the
-medians, their ratio, the cost per stored template, and whether both chose the same template.
+Cost: with N stored templates (N = 1k, 10k, 50k by default) a frame is observed by the default
+matcher (the nearest-neighbour index, then `candidates` per shift compared exactly) and by the
+exhaustive one (every template compared patch to patch at every shift, `matcher =
+"exhaustive"`). Both get the same store and the same frames; the table gives the medians, their
+ratio, and whether both chose the same template.
 
 The stored templates are realistic rather than white noise: smooth random scenes (low-pass
 filtered noise plus vertical edges and a brightness gradient), normalised as template_of does.
 The frames observed are full-size images whose view is one of the stored templates, seen
 shifted by a few columns, re-lit and with sensor noise, so every frame is a match (as on a
-revisit) and the store keeps its size.
+revisit).
+
+Recall (`--recall SPEC@PRESET,...`): the loop-closure detector over a whole sequence with each
+matcher (no closure geometry: it does not change which closures are confirmed); of the closures
+the exhaustive search confirms, how many the index confirms too (the same frame against the
+same matched frame).
 """
 
 from __future__ import annotations
@@ -80,15 +86,38 @@ def query_frames(templates: ViewTemplates, frames: int, rng: np.random.Generator
 def time_observe(templates: ViewTemplates, frames: list[tuple[int, np.ndarray]]) -> tuple[float, list[int]]:
     """Median seconds per observe() and the template each frame matched (-1: stored as new)."""
     seconds, matched = [], []
-    count = len(templates)
     for index, (_, image) in enumerate(frames):
         started = time.perf_counter()
         match = templates.observe(image, 10**9 + index)
         seconds.append(time.perf_counter() - started)
         matched.append(-1 if match.is_new else match.template_id)
-        if len(templates) > count:   # keep the store's size: drop a view that was stored
-            templates.frames.pop()
     return statistics.median(seconds), matched
+
+
+def confirmed_closures(spec: str, preset: str, matcher: str) -> set[tuple[int, int]]:
+    """(frame, matched frame) of every closure the detector confirms over a sequence."""
+    from services.source.spec import open_source
+
+    config = load_config(LoopClosureConfig, "loopclosure", preset=preset).model_copy(
+        update={"matcher": matcher, "closure": "ratslam"})
+    detector = config.detector()
+    closures = set()
+    for frame in open_source(spec, preset=preset, mono=True):
+        observed = detector.observe(frame.seq, frame.left)
+        if observed.closure is not None:
+            closures.add((frame.seq, observed.closure.matched_frame))
+    return closures
+
+
+def recall(sequences: list[str]) -> None:
+    print("| sequence | preset | closures, exhaustive | closures, index | found by both | recall |")
+    print("|:--|:--|--:|--:|--:|--:|")
+    for item in sequences:
+        spec, _, preset = item.partition("@")
+        exhaustive, index = (confirmed_closures(spec, preset, matcher) for matcher in ("exhaustive", "index"))
+        both = len(exhaustive & index)
+        print(f"| {spec} | {preset} | {len(exhaustive)} | {len(index)} | {both} | "
+              f"{100.0 * both / len(exhaustive) if exhaustive else 100.0:.1f} % |", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,27 +127,31 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=15, help="frames observed per size (the median is reported)")
     parser.add_argument("--exhaustive-frames", type=int, default=5, help="frames for the exhaustive matcher")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--recall", metavar="SPEC@PRESET,...",
+                        help="instead: closures confirmed with the index against the exhaustive search over these "
+                             "sequences, e.g. synthetic:0@synthetic,stereo:../shared/data/nubot_scene1@nubot")
     args = parser.parse_args(argv)
+    if args.recall:
+        recall([item for item in args.recall.split(",") if item.strip()])
+        return 0
     config = load_config(LoopClosureConfig, "loopclosure", preset=args.preset)
     params = config.template_params()
     sizes = [int(v) for v in args.sizes.split(",") if v.strip()]
     rng = np.random.default_rng(args.seed)
-    print(f"view templates {params.width}×{params.height}, shifts ±{params.shift_range}, prefilter keeps {params.candidates} "
-          f"(preset {args.preset}); {args.frames} frames per size ({args.exhaustive_frames} exhaustive); medians")
+    print(f"view templates {params.width}×{params.height}, shifts ±{params.shift_range}, index: {params.candidates} "
+          f"nearest per shift (preset {args.preset}); {args.frames} frames per size ({args.exhaustive_frames} exhaustive); medians")
     print()
-    print("| stored templates | observe, prefilter (ms) | ns per stored template | observe, exhaustive (ms) | exhaustive / prefilter | same match | frames matched right |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print("| stored templates | observe, index (ms) | observe, exhaustive (ms) | exhaustive / index | same match | frames matched right |")
+    print("|---:|---:|---:|---:|---:|---:|")
     for size in sizes:
         templates = make_store(size, params, rng)
         frames = query_frames(templates, args.frames, rng)
         templates.observe(frames[0][1], -1)   # warm up (allocations, caches)
-        if len(templates) > size:
-            templates.frames.pop()
         fast, fast_matched = time_observe(templates, frames)
-        templates.params = replace(params, candidates=size + 1)   # the same store, every template compared in full
+        templates.params = replace(params, matcher="exhaustive")   # the same store, every template compared in full
         slow, slow_matched = time_observe(templates, frames[:args.exhaustive_frames])
         same = sum(a == b for a, b in zip(fast_matched, slow_matched))
         right = sum(m == t for m, (t, _) in zip(fast_matched, frames))
-        print(f"| {size:,} | {1e3 * fast:.2f} | {1e9 * fast / size:.0f} | {1e3 * slow:.1f} | {slow / fast:.0f}× "
+        print(f"| {size:,} | {1e3 * fast:.2f} | {1e3 * slow:.1f} | {slow / fast:.0f}× "
               f"| {same}/{len(slow_matched)} | {right}/{len(frames)} |")
     return 0

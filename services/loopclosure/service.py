@@ -1,31 +1,34 @@
-"""loopclosure: RatSLAM view templates of every frame and the paper's loop-closure rule."""
+"""loopclosure: RatSLAM view templates of every frame, the paper's loop-closure rule, and the
+relative pose of each confirmed closure measured from the images (detector.py)."""
 
 from __future__ import annotations
 
 import argparse
 import base64
 import collections
-import csv
+import dataclasses
 import logging
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
-
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import CameraFrame, LoopClosure, ViewTemplate
+from schemas import CameraFrame, LoopClosure, PlanarIncrement, ViewTemplate
 from services.common.config import load_config
-from services.common.errors import PersistenceError
 from services.common.convert import image_from_msg
-from services.common.runtime import RuntimeConfig
+from services.common.errors import ConfigError
 from services.common.journal import Journal
+from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.loopclosure.consistency import Closure, ConsistencyParams, ConsistencyRule
-from services.loopclosure.templates import TemplateParams, ViewMatch, ViewTemplates
+from services.loopclosure.consistency import Closure, ConsistencyParams
+from services.loopclosure.detector import LoopClosureDetector, Measurement
+from services.loopclosure.geometry import GeometryParams
+from services.loopclosure.keyframes import KeyframeStore
+from services.loopclosure.templates import TemplateParams, ViewMatch
+from services.source.frames import Camera
 
 log = logging.getLogger(__name__)
-
-CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes")
 
 
 class LoopClosureConfig(BaseModel):
@@ -40,23 +43,60 @@ class LoopClosureConfig(BaseModel):
     shift_range: int = Field(5, ge=0, description="Column shifts tried in each direction.")
     match_threshold: float = Field(0.085, gt=0, description="Distance below which a view matches a stored template.")
     fov_deg: float = Field(53.0, gt=0, le=360, description="Horizontal field of view of the image, degrees.")
-    candidates: int = Field(32, ge=1, description="Templates compared in full after the profile prefilter.")
+    matcher: Literal["index", "exhaustive"] = Field(
+        "index", description="index: candidates from a nearest-neighbour index, verified exactly; exhaustive: every template.")
+    candidates: int = Field(16, ge=1, description="Nearest templates per shift taken from the index, then compared exactly.")
+    index_rows: int = Field(3, ge=1, description="Row bands of the index's template descriptor.")
     window: int = Field(10, ge=1, description="Consecutive frames of the consistency rule.")
     min_votes: int = Field(7, ge=1, description="Consistent possible closures needed in the window (paper: more than six).")
     tolerance: int = Field(5, ge=0, description="Frames by which the votes' frame offsets may disagree.")
     recent_frames: int = Field(30, ge=1, description="Templates stored fewer frames ago are not loop closures.")
-    out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
+    closure: Literal["metric", "ratslam"] = Field(
+        "metric", description="metric: measure each closure's relative pose; ratslam: no measurement (the map snaps).")
+    geometry: Literal["auto", "scanline"] = Field(
+        "auto", description="auto: the relative pose from the images (stereo PnP, or mono essential matrix); scanline: "
+                            "RatSLAM's model, at the matched place turned by the templates' relative angle.")
+    scanline_translation_sigma: float = Field(
+        0.5, gt=0, description="scanline measurement: how far from the matched place the robot may be, m (std dev).")
+    scanline_heading_sigma: float = Field(0.05, gt=0, description="scanline measurement: std dev of its relative angle, rad.")
+    geometry_params: dict[str, Any] = Field(
+        default_factory=dict, description="Keyframe and closure-geometry parameters (GeometryParams, docs/closure_geometry.md).")
+    keyframe_store_mb: float = Field(512.0, gt=0, description="Largest size of the keyframe file beside the journal, MiB.")
     store: Path | None = Field(
-        None, description="Journal of templates and matches, appended every frame; a restarted service resumes from it.")
+        None, description="Journal of templates and matches, appended every frame; a restarted service resumes from it. "
+                          "Keyframes go beside it (same name, suffix .keyframes).")
 
     def template_params(self) -> TemplateParams:
         return TemplateParams(crop=self.crop, width=self.width, height=self.height, normalisation=self.normalisation,
                               shift_range=self.shift_range, match_threshold=self.match_threshold, fov_deg=self.fov_deg,
-                              candidates=self.candidates)
+                              matcher=self.matcher, candidates=self.candidates, index_rows=self.index_rows)
 
     def consistency_params(self) -> ConsistencyParams:
         return ConsistencyParams(window=self.window, min_votes=self.min_votes, tolerance=self.tolerance,
                                  recent_frames=self.recent_frames)
+
+    def geometry_parameters(self) -> GeometryParams:
+        known = {field.name for field in dataclasses.fields(GeometryParams)}
+        unknown = sorted(set(self.geometry_params) - known)
+        if unknown:
+            raise ConfigError(f"[loopclosure] geometry_params: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in self.geometry_params.items()}
+        params = GeometryParams(**values)
+        params.check()
+        return params
+
+    def detector(self, keyframes=None) -> LoopClosureDetector:
+        mode = "none" if self.closure == "ratslam" else self.geometry
+        return LoopClosureDetector(self.template_params(), self.consistency_params(), self.geometry_parameters(), mode,
+                                   self.scanline_translation_sigma, self.scanline_heading_sigma, keyframes)
+
+
+def camera_of(message: CameraFrame, image: np.ndarray) -> Camera | None:
+    info = message.camera_info
+    if info is None:
+        return None
+    return Camera(fx=info.fx, fy=info.fy, cx=info.cx, cy=info.cy, baseline=info.baseline,
+                  width=image.shape[1], height=image.shape[0])
 
 
 class LoopClosureService(Service):
@@ -65,26 +105,25 @@ class LoopClosureService(Service):
     def __init__(self, runtime: RuntimeConfig, config: LoopClosureConfig, instance: str | None = None):
         super().__init__(runtime, instance)
         self.config = config
-        self.templates = ViewTemplates(config.template_params())
-        self.rule = ConsistencyRule(config.consistency_params())
-        self.closures = 0
-        self.csv_path = config.out / "loop_closures.csv" if config.out else None
-        if self.csv_path is not None and not self.csv_path.exists():
-            self.csv_path.parent.mkdir(parents=True, exist_ok=True)
-            with open(self.csv_path, "w", newline="") as handle:
-                csv.writer(handle).writerow(CLOSURE_COLUMNS)
+        keyframes = None
+        if config.store is not None:
+            keyframes = KeyframeStore(config.store.with_suffix(".keyframes"), int(config.keyframe_store_mb * 2**20))
+        self.detector = config.detector(keyframes)
         # Frames already handled (from the journal after a restart), to answer a re-sent frame again.
-        self.recent: collections.OrderedDict[int, tuple[ViewMatch, Closure | None]] = collections.OrderedDict()
+        self.recent: collections.OrderedDict[int, tuple[ViewMatch, Closure | None, Measurement | None]] = \
+            collections.OrderedDict()
         self.last_frame: int | None = None
         self.journal = None
         if config.store is not None:
-            params = config.model_dump(mode="json", exclude={"out", "store"})
-            self.journal = Journal(config.store, {"format": "gridslam-view-templates", "version": 1, "params": params})
+            params = config.model_dump(mode="json", exclude={"store", "keyframe_store_mb"})
+            self.journal = Journal(config.store, {"format": "gridslam-view-templates", "version": 2, "params": params})
             for record in self.journal.records:
                 self._replay(record)
+            # A keyframe written just before a crash, whose frame the journal does not hold, is dropped.
+            self.detector.keyframes.truncate(len(self.detector.templates))
             if self.journal.records:
                 log.info("loopclosure resumed from %s: %d frames, %d templates", config.store,
-                         len(self.journal.records), len(self.templates))
+                         len(self.journal.records), len(self.detector.templates))
 
     def setup(self) -> None:
         self.subscribe("camera/frame", self.on_frame)
@@ -92,6 +131,7 @@ class LoopClosureService(Service):
     def teardown(self) -> None:
         if self.journal is not None:
             self.journal.close()
+        self.detector.close()
 
     def on_frame(self, message: CameraFrame) -> None:
         seq = message.header.seq
@@ -99,67 +139,74 @@ class LoopClosureService(Service):
             if seq in self.recent:   # handled before a restart: answer it again from the journal
                 self._publish(message.header, *self.recent[seq])
             return
-        image = image_from_msg(message.left)
-        match = self.templates.observe(image, seq)
-        closure = self.rule.update(seq, match.template_id, match.is_new, match.matched_frame)
+        left = image_from_msg(message.left)
+        right = image_from_msg(message.right) if message.right is not None else None
+        observed = self.detector.observe(seq, left, right, camera_of(message, left))
+        match, closure, measurement = observed.match, observed.closure, observed.measurement
         if closure is not None:
-            self.closures += 1
-            log.info("loop closure confirmed at frame %d: frame %d (template %d), %d votes", seq, closure.matched_frame,
-                     closure.matched_template, closure.votes)
-            if self.csv_path is not None:
-                try:
-                    with open(self.csv_path, "a", newline="") as handle:
-                        csv.writer(handle).writerow((seq, closure.matched_frame, closure.matched_template, closure.votes))
-                except OSError as error:
-                    raise PersistenceError(f"{self.csv_path}: cannot append ({error.strerror or error})") from None
-        self._publish(message.header, match, closure)
+            log.info("loop closure confirmed at frame %d: frame %d (template %d), %d votes, measurement %s%s", seq,
+                     closure.matched_frame, closure.matched_template, closure.votes, measurement.method,
+                     f" ({measurement.error})" if measurement.error else "")
+        self._publish(message.header, match, closure, measurement)
         # Journaled after publishing: a crash in between re-handles the frame, never loses it.
         if self.journal is not None:
-            patch = self.templates.patch(match.template_id) if match.is_new else None
+            patch = self.detector.templates.patch(match.template_id) if match.is_new else None
             self.journal.append({"frame": seq, "template": match.template_id, "new": match.is_new,
                                  "distance": match.distance, "angle": match.relative_angle, "matched_frame": match.matched_frame,
-                                 "shift": match.shift, "patch": base64.b64encode(patch.tobytes()).decode() if patch is not None else None})
-        self._remember(seq, match, closure)
+                                 "shift": match.shift, "patch": base64.b64encode(patch.tobytes()).decode() if patch is not None else None,
+                                 "measurement": dataclasses.asdict(measurement) if measurement is not None else None})
+        self._remember(seq, match, closure, measurement)
 
-    def _publish(self, header, match: ViewMatch, closure: Closure | None) -> None:
+    def _publish(self, header, match: ViewMatch, closure: Closure | None, measurement: Measurement | None) -> None:
         if closure is not None:
-            self.publish("loop/closure", LoopClosure(header=header, frame=closure.frame, matched_frame=closure.matched_frame,
-                                                     matched_template=closure.matched_template, votes=closure.votes))
+            measured = measurement.method != "none"
+            self.publish("loop/closure", LoopClosure(
+                header=header, frame=closure.frame, matched_frame=closure.matched_frame,
+                matched_template=closure.matched_template, votes=closure.votes, measurement=measurement.method,
+                relative_pose=PlanarIncrement(forward=measurement.forward, left=measurement.left, yaw=measurement.yaw)
+                if measured else None, covariance=list(measurement.covariance) if measured else None,
+                inliers=measurement.inliers, geometry_error=measurement.error))
         self.publish("view/template", ViewTemplate(
             header=header, template_id=match.template_id, is_new=match.is_new, distance=match.distance,
-            relative_angle=match.relative_angle, matched_frame=match.matched_frame, template_count=len(self.templates),
-            loop_closure=closure is not None))
+            relative_angle=match.relative_angle, matched_frame=match.matched_frame,
+            template_count=len(self.detector.templates), loop_closure=closure is not None))
 
     def _replay(self, record: dict) -> None:
         """Rebuild the templates and the consistency window from one journal record."""
-        frame = record["frame"]
+        patch = None
         if record["new"]:
             shape = (self.config.height, self.config.width)
-            self.templates.add(np.frombuffer(base64.b64decode(record["patch"]), dtype=np.float32).reshape(shape), frame)
+            patch = np.frombuffer(base64.b64decode(record["patch"]), dtype=np.float32).reshape(shape)
         match = ViewMatch(record["template"], record["new"], record["distance"], record["angle"], record["matched_frame"],
                           record["shift"])
-        closure = self.rule.update(frame, match.template_id, match.is_new, match.matched_frame)
-        self.closures += closure is not None
-        self._remember(frame, match, closure)
+        measurement = record["measurement"]
+        if measurement is not None:
+            measurement = Measurement(**{**measurement, "covariance": tuple(measurement["covariance"])})
+        closure = self.detector.replay(record["frame"], match, patch, measurement)
+        self._remember(record["frame"], match, closure, measurement)
 
-    def _remember(self, frame: int, match: ViewMatch, closure: Closure | None) -> None:
+    def _remember(self, frame: int, match: ViewMatch, closure: Closure | None, measurement: Measurement | None) -> None:
         self.last_frame = frame
-        self.recent[frame] = (match, closure)
+        self.recent[frame] = (match, closure, measurement)
         while len(self.recent) > REPLAY_FRAMES:
             self.recent.popitem(last=False)
 
     def extra_counters(self) -> dict[str, float]:
-        return {**super().extra_counters(), "templates": len(self.templates), "loop_closures": self.closures}
+        counts = self.detector.counts
+        return {**super().extra_counters(), "templates": len(self.detector.templates), "loop_closures": counts["closures"],
+                "closure_geometry_failed": counts["geometry_failed"]}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", help="view-template parameters for a dataset: synthetic, nubot, kitti, stlucia")
     parser.add_argument("--match-threshold", type=float, help="template match distance threshold")
-    parser.add_argument("--out", type=Path, help="folder for loop_closures.csv")
     parser.add_argument("--store", type=Path, help="journal of templates; a restart resumes from it")
+    parser.add_argument("--closure", choices=["metric", "ratslam"],
+                        help="measure each closure's relative pose (metric, default) or not (ratslam: the map snaps)")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(LoopClosureConfig, "loopclosure", preset=args.preset, config_file=args.config,
-                         overrides={"match_threshold": args.match_threshold, "out": args.out, "store": args.store})
+                         overrides={"match_threshold": args.match_threshold, "store": args.store, "closure": args.closure})
+    config.geometry_parameters()   # a bad key fails at start, with one line
     return LoopClosureService(runtime, config, args.instance).run()

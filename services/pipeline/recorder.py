@@ -31,9 +31,10 @@ class Recording:
     increments: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     grid_poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     map_poses: dict[int, tuple[float, float, float, int]] = field(default_factory=dict)
-    final_map: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # frames on the final relaxed map
+    final_map: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # frames on the final map
+    map_decisions: list[tuple[int, int, str]] = field(default_factory=list)   # the final map's closures: frame, matched, fate
     templates: dict[int, tuple[int, bool]] = field(default_factory=dict)
-    closures: list[tuple[int, int, int, int]] = field(default_factory=list)
+    closures: dict[int, tuple[int, int, int, int]] = field(default_factory=dict)   # frame → closure (once, if re-sent)
     lattices: dict[int, np.ndarray] = field(default_factory=dict)
     arrivals: dict[str, dict[int, float]] = field(default_factory=lambda: defaultdict(dict))
     decode_errors: int = 0
@@ -116,6 +117,6 @@ class Recorder:
             elif topic == "view/template":
                 r.templates[seq] = (message.template_id, message.is_new)
             elif topic == "loop/closure":
-                r.closures.append((message.frame, message.matched_frame, message.matched_template, message.votes))
+                r.closures[message.frame] = (message.frame, message.matched_frame, message.matched_template, message.votes)
             elif topic == "grid/activity":
                 r.lattices[seq] = image_from_msg(message.image)

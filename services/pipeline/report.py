@@ -3,6 +3,7 @@ per stage against the ground truth, and the plots (issue 6, "Results folder").""
 
 from __future__ import annotations
 
+import collections
 import logging
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from services.pipeline.recorder import Recording
 log = logging.getLogger(__name__)
 
 RPE_DISTANCES_M = (1.0, 10.0, 100.0)
+TRUE_CLOSURE_M = 2.0   # a closure between frames farther apart than this (by ground truth) is false
 # Stage → the topic whose arrival times give its latency. `map_online` is the pose expmap published
 # at each frame; `map` is every frame placed on the final, relaxed map (from the map's journal).
 STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map_online": "map/pose", "map": "map/pose"}
@@ -103,7 +105,9 @@ def evaluate(recording: Recording, statuses: dict[str, dict], restarts: dict[str
         "frames_expected": frames_expected,
         "frames_sent": len(sent),
         "wall_time_s": wall_time_s,
-        "loop_closures": [dict(zip(("frame", "matched_frame", "matched_template", "votes"), c)) for c in recording.closures],
+        "loop_closures": [dict(zip(("frame", "matched_frame", "matched_template", "votes"), c))
+                          for _, c in sorted(recording.closures.items())],
+        "map_closures": map_closures(recording, trajs.get("groundtruth")),
         "view_templates": 1 + max((t for t, _ in recording.templates.values()), default=-1),
         "experiences": 1 + max((m[3] for m in recording.map_poses.values()), default=-1),
         "groundtruth_path_length_m": reference.path_length() if reference is not None else None,
@@ -113,6 +117,23 @@ def evaluate(recording: Recording, statuses: dict[str, dict], restarts: dict[str
     for name, count in restarts.items():
         services.setdefault(name, {"restarts": count})
     return {"summary": summary, "stages": stages, "services": services}, trajs
+
+
+def map_closures(recording: Recording, truth: Trajectory | None) -> dict:
+    """What the final map made of the confirmed closures: accepted, rejected, unmeasured (its
+    geometry failed); with ground truth, each fate split into true closures (the two frames
+    within TRUE_CLOSURE_M of each other) and false ones, and the largest distance accepted."""
+    counts: dict = collections.Counter(fate for _, _, fate in recording.map_decisions)
+    result = {fate: counts.get(fate, 0) for fate in ("accepted", "rejected", "unmeasured", "unmatched")}
+    if truth is not None and recording.map_decisions:
+        row = {s: i for i, s in enumerate(_seqs(recording, "groundtruth"))}
+        distances = [(fate, float(np.linalg.norm(truth.positions[row[f], :2] - truth.positions[row[m], :2])))
+                     for f, m, fate in recording.map_decisions if f in row and m in row]
+        for fate in ("accepted", "rejected", "unmeasured"):
+            result[f"{fate}_true"] = sum(d <= TRUE_CLOSURE_M for x, d in distances if x == fate)
+            result[f"{fate}_false"] = sum(d > TRUE_CLOSURE_M for x, d in distances if x == fate)
+        result["accepted_largest_distance_m"] = max((d for x, d in distances if x == "accepted"), default=None)
+    return result
 
 
 def write_report(folder: Path, recording: Recording, result: dict, trajs: dict[str, Trajectory]) -> list[Path]:
@@ -168,6 +189,14 @@ def summary_rows(result: dict) -> list[tuple[str, object, str]]:
         ("experiences", summary["experiences"], ""),
         ("confirmed loop closures", len(summary["loop_closures"]), ""),
     ]
+    closures = summary["map_closures"]
+    if summary["loop_closures"]:
+        rows.append(("closures accepted / rejected / unmeasured by the map",
+                     f"{closures['accepted']} / {closures['rejected']} / {closures['unmeasured']}", ""))
+    if "accepted_false" in closures:
+        rows.append(("closures accepted: true / false", f"{closures['accepted_true']} / {closures['accepted_false']}",
+                     f"false: frames > {TRUE_CLOSURE_M:g} m apart"))
+        rows.append(("closures rejected: true / false", f"{closures['rejected_true']} / {closures['rejected_false']}", ""))
     for name, stage in result["stages"].items():
         rows.append((f"{name}: frames", stage["frames"], "frames"))
         if "ate_se2" in stage:

@@ -23,13 +23,14 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.common.config import SERVICES_DIR
+from services.common.config import describe_preset, is_preset_file, load_config, preset_applies
 from services.common.errors import ConfigError, GridslamError
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
 from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
+from services.source.service import SourceConfig
 from services.source.spec import open_source
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,9 @@ class RunConfig(BaseModel):
         None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
     decoder: Literal["paper", "fft", "subpixel"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
-    preset: str | None = Field(None, description="Dataset preset passed to every service that has one.")
+    preset: str | None = Field(
+        None, description="Dataset preset passed to every service that has one, or a preset file (base preset and "
+                          "per-service tables, docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file for the source (overrides the preset's).")
     config_file: Path | None = Field(None, description="gridslam TOML config file passed to every service.")
     n_frames: int | None = Field(None, ge=1, description="Process only this many frames.")
@@ -73,8 +76,16 @@ class RunConfig(BaseModel):
     robot: str = Field("robot0", description="Robot name.")
     window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
+    closure: Literal["metric", "ratslam"] | None = Field(
+        None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
+                          "default: the services' (metric).")
+    map_optimizer: Literal["gtsam", "ratslam"] | None = Field(
+        None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
     view: str | None = Field(None, description="Also run the viewer, serving HTTP on this host:port.")
     stall_timeout: float = Field(60.0, gt=0, description="Fail when no frame completes for this many seconds.")
+    world: dict[str, int | float | bool | str] = Field(
+        default_factory=dict, description="Synthetic world settings for the source (--laps, --world KEY=VALUE), over the "
+                                          "preset's and the config file's [source] keys.")
 
 
 @dataclass
@@ -222,16 +233,12 @@ def router_endpoint(config: RunConfig) -> str:
     return config.connect or config.listen
 
 
-def has_preset(service: str, preset: str) -> bool:
-    return (SERVICES_DIR / service / "presets" / f"{preset}.toml").is_file()
-
-
 def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
     """`gridslam service NAME ...` arguments of one service of the run."""
     args = ["service", name, "-e", router_endpoint(config), "--robot", config.robot, "--instance", name]
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]
-    if config.preset and has_preset(name, config.preset):
+    if config.preset and preset_applies(name, config.preset):
         args += ["--preset", config.preset]
     if name == "egomotion" and config.egomotion:
         args += ["--estimator", config.egomotion]
@@ -241,9 +248,12 @@ def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
     if name == "viewer":
         args += ["--http", config.view]
     if name == "loopclosure":
-        args += ["--out", str(folder), "--store", str(folder / TEMPLATE_LOG)]
+        args += ["--store", str(folder / TEMPLATE_LOG)]
     if name == "expmap":
-        args += ["--store", str(folder / MAP_LOG)]
+        args += ["--store", str(folder / MAP_LOG), "--out", str(folder)]
+        args += ["--map-optimizer", config.map_optimizer] if config.map_optimizer else []
+    if name in ("loopclosure", "expmap") and config.closure:
+        args += ["--closure", config.closure]
     return args
 
 
@@ -258,7 +268,28 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
         args += ["--preset", config.preset]
     if config.calibration is not None:
         args += ["--calibration", str(config.calibration)]
+    for key, value in config.world.items():
+        args += ["--world", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
     return args + (["--stop", str(stop)] if stop is not None else [])
+
+
+def source_settings(config: RunConfig) -> SourceConfig:
+    """The source's settings as its service will resolve them: the config file's [source] under
+    the run's flags."""
+    return load_config(SourceConfig, "source", config_file=config.config_file, overrides={
+        "source": config.source, "preset": config.preset, "calibration": config.calibration, **config.world})
+
+
+def log_preset(config: RunConfig, services: list[str]) -> None:
+    """For a preset file, one line saying which services take keys from it and which stay on a
+    preset (a warning when some run on their defaults). Checks the file first."""
+    if not config.preset or not is_preset_file(config.preset):
+        return
+    line = describe_preset(config.preset, services)
+    if all(preset_applies(name, config.preset) for name in services):
+        log.info("%s", line)
+    else:
+        log.warning("%s", line)
 
 
 @dataclass
@@ -275,13 +306,15 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     if config.connect is None:
         check_port_free(config.listen)
     stop = config.start + config.n_frames * config.step if config.n_frames else None
-    frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=config.preset,
-                         calibration=config.calibration)
+    stages = ["egomotion", "gridcells"] + (["loopclosure", "expmap"] if config.mapping else [])
+    log_preset(config, ["source", *stages])
+    settings = source_settings(config)
+    frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=settings.preset,
+                         calibration=settings.calibration, world=settings.world())
     total = None if getattr(frames, "live", False) else len(frames)
     folder = results_dir(out)
     write_config(folder / "config.json", config)
     (folder / "logs").mkdir(exist_ok=True)
-    stages = ["egomotion", "gridcells"] + (["loopclosure", "expmap"] if config.mapping else [])
     ack_topic = "map/pose" if config.mapping else "grid/pose"
     supervisor = Supervisor(folder / "logs")
     started = time.monotonic()
@@ -304,9 +337,11 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         supervisor.stop(["router"])
     if (folder / MAP_LOG).exists():
         map_log = read_log(folder / MAP_LOG)
-        final = corrected_trajectory(map_log.rebuild(), map_log.steps)
+        experience_map = map_log.rebuild()
+        final = corrected_trajectory(experience_map, map_log.steps)
         x, y, heading = final.planar()
         recording.final_map = {step.frame: (x[i], y[i], heading[i]) for i, step in enumerate(map_log.steps)}
+        recording.map_decisions = experience_map.decisions
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
     result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
     write_report(folder, recording, result, trajs)

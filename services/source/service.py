@@ -21,8 +21,9 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from schemas import CameraFrame, CameraInfo, PlanarIncrement
 from schemas.base import Message
@@ -33,7 +34,8 @@ from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.topics import TOPICS
 from services.source.frames import Frame, FrameSource, planar_motion
-from services.source.spec import open_source
+from services.source.spec import add_world_arguments, open_source, parse_world_flags, world_keys
+from services.source.synthetic import WorldConfig
 
 log = logging.getLogger(__name__)
 
@@ -44,13 +46,15 @@ WAIT_LOG_PERIOD_S = 10.0   # how often a source stalled on its window says so
 RECONNECT_SETTLE_S = 0.5
 
 
-class SourceConfig(BaseModel):
-    """Configuration of the source service (table `[source]`, env `GRIDSLAM_SOURCE_*`)."""
+class _SourceSettings(BaseModel):
+    """Configuration of the source service (table `[source]`, env `GRIDSLAM_SOURCE_*`); the
+    synthetic world's settings (`laps`, `speed`, ... : spec.world_keys()) are keys of it too."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     source: str = Field(description="What to read: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
-    preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic.")
+    preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic, campus, "
+                                                  "or a preset file (docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
     mono: bool = Field(False, description="Publish only the left image of a stereo source.")
     start: int = Field(0, ge=0, description="First frame index.")
@@ -76,6 +80,20 @@ class SourceConfig(BaseModel):
     wait_for: list[str] = Field(
         default_factory=list, description="Services whose health tokens must all be on the network before the first "
                                           "frame (e.g. egomotion, gridcells, loopclosure, expmap).")
+
+    def world(self) -> dict[str, Any]:
+        """The synthetic world settings given here (they override the preset's)."""
+        return {key: getattr(self, key) for key in world_keys() if getattr(self, key) is not None}
+
+
+def _world_fields() -> dict[str, Any]:
+    defaults = {field.name: field.default for field in dataclasses.fields(WorldConfig)}
+    return {key: (kind | None, Field(None, description=f"Synthetic world: {key} (default {defaults[key]!r}); "
+                                                        f"overrides the preset's (docs/sources.md)."))
+            for key, kind in world_keys().items()}
+
+
+SourceConfig = create_model("SourceConfig", __base__=_SourceSettings, __doc__=_SourceSettings.__doc__, **_world_fields())
 
 
 def frame_message(frame: Frame, header) -> CameraFrame:
@@ -278,7 +296,7 @@ class SourceService(Service):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
-    parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic")
+    parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, or a preset file")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file")
     parser.add_argument("--mono", action="store_true", default=None, help="publish only the left image")
     parser.add_argument("--start", type=int, help="first frame index")
@@ -293,13 +311,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop", action="store_true", default=None, help="start again at the first frame after the last, for ever")
     parser.add_argument("--wait-for", type=lambda text: [name.strip() for name in text.split(",") if name.strip()],
                         help="services whose health tokens must be up before the first frame, comma separated")
+    add_world_arguments(parser)
+
+
+def config_from_args(args: argparse.Namespace) -> SourceConfig:
+    """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
+    (world settings from --laps and --world KEY=VALUE)."""
+    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
+              "resend_after", "loop", "wait_for")
+    return load_config(SourceConfig, "source", config_file=args.config,
+                       overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
-    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
-              "resend_after", "loop", "wait_for")
-    config = load_config(SourceConfig, "source", config_file=args.config,
-                         overrides={name: getattr(args, name) for name in fields})
+    config = config_from_args(args)
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
-                         calibration=config.calibration, mono=config.mono, origin=config.origin)
+                         calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world())
     return SourceService(runtime, config, frames, args.instance).run()

@@ -7,16 +7,18 @@
     camera:N        live camera N (or a device path / stream URL), newest frame only (camera.LiveCamera)
     synthetic:SEED  procedural world rendered on the fly (synthetic.SyntheticWorld)
 
-A preset (``services/source/presets/<name>.toml``, or a path to such a file) is a flat TOML
-table of calibration keys (calibration.py) and source settings (``fps``, ``grey``, and for the
-synthetic world the fields of ``synthetic.WorldConfig``). An explicit calibration (a file of our
-format or a Camera) wins over the preset's, and either wins over the dataset's own.
+A preset (``services/source/presets/<name>.toml``) is a flat TOML table of calibration keys
+(calibration.py) and source settings (``fps``, ``grey``, and for the synthetic world the fields
+of ``synthetic.WorldConfig``); a preset file of one's own gives its ``[source]`` table over its
+base's (services/common/config.py). An explicit calibration (a file of our format or a Camera)
+wins over the preset's, and either wins over the dataset's own; ``world`` settings win over
+the preset's.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -35,51 +37,89 @@ def preset_names() -> list[str]:
     return sorted(path.stem for path in PRESET_DIR.glob("*.toml"))
 
 
-def preset_path(preset: str | Path) -> Path:
-    """The file of a preset name (``nubot``) or of a path to a TOML file."""
-    text = str(preset)
-    if text.endswith(".toml") or "/" in text or "\\" in text:
-        path = Path(text)
-        if not path.is_file():
-            raise ConfigError(f"{path}: preset file not found")
-        return path
-    path = PRESET_DIR / f"{text}.toml"
-    if not path.is_file():
-        raise ConfigError(f"unknown source preset {text!r} (available: {', '.join(preset_names())})")
-    return path
+def world_keys() -> dict[str, type]:
+    """The synthetic world's settings (``synthetic.WorldConfig``'s fields but the seed, which
+    comes from the spec) and their types: keys of a preset, of ``[source]`` and of ``--world``."""
+    from services.source.synthetic import WorldConfig
+
+    types = {"int": int, "float": float, "bool": bool, "str": str}
+    return {field.name: types.get(str(field.type), float) for field in dataclasses.fields(WorldConfig) if field.name != "seed"}
+
+
+def check_setting(key: str, value: Any, expected: type, where: str) -> Any:
+    """``value`` as ``expected`` (an int is a float too), or a one-line ConfigError naming ``where`` and the key."""
+    if expected is str:
+        ok = isinstance(value, str)
+    elif expected is bool:
+        ok = isinstance(value, bool)
+    else:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and (expected is float or isinstance(value, int))
+    if not ok:
+        raise ConfigError(f"{where}: key {key!r} must be {expected.__name__}, got {value!r}")
+    return expected(value)
+
+
+def add_world_arguments(parser) -> None:
+    """``--laps N`` and ``--world KEY=VALUE``: the synthetic world's settings as flags (the
+    source service, `gridslam run` and `demo`); ``parse_world_flags`` reads them."""
+    parser.add_argument("--laps", type=int, help="synthetic world: laps of its route (over the preset's and the config file's)")
+    parser.add_argument("--world", action="append", metavar="KEY=VALUE",
+                        help="synthetic world setting over the preset's and the config file's [source] keys, repeatable "
+                             "(layout, speed, laps, lamps_off, ...: docs/sources.md)")
+
+
+def parse_world_flags(pairs: list[str] | None, laps: int | None = None) -> dict[str, Any]:
+    """``--world KEY=VALUE`` flags (and ``--laps N``) as typed world settings; a bad one is a
+    one-line ConfigError naming the flag and the key."""
+    keys = world_keys()
+    world: dict[str, Any] = {}
+    for pair in pairs or []:
+        key, equals, text = pair.partition("=")
+        key = key.strip()
+        if not equals or key not in keys:
+            raise ConfigError(f"--world {pair}: expected KEY=VALUE with KEY one of {', '.join(keys)}")
+        expected, text = keys[key], text.strip()
+        try:
+            if expected is bool:
+                if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError(text)
+                value: Any = text.lower() in ("true", "1", "yes")
+            else:
+                value = expected(text)
+        except ValueError:
+            raise ConfigError(f"--world {pair}: {key} must be {expected.__name__}, got {text!r}") from None
+        world[key] = value
+    if laps is not None:
+        world["laps"] = laps
+    return world
 
 
 def load_preset(preset: str | Path) -> tuple[Camera | None, dict[str, Any]]:
-    """A preset's calibration (None when it has none) and its other settings, checked."""
-    from services.source.synthetic import WorldConfig  # the synthetic world's settings are preset keys too
+    """A preset's calibration (None when it has none) and its other settings, checked. A
+    preset file (``services/common/config.py``) gives its ``[source]`` table over its base's."""
+    from services.common.config import is_preset_file, preset_values
 
-    path = preset_path(preset)
-    try:
-        with path.open("rb") as stream:
-            table = tomllib.load(stream)
-    except (OSError, tomllib.TOMLDecodeError) as error:
-        raise ConfigError(f"{path}: not a readable TOML preset: {error}") from None
-    # The seed comes from the spec (synthetic:SEED), never from a preset.
-    world_fields = {field.name: field.type for field in dataclasses.fields(WorldConfig) if field.name != "seed"}
+    if is_preset_file(preset):
+        where = str(preset)
+    elif str(preset) in preset_names():
+        where = str(PRESET_DIR / f"{preset}.toml")
+    else:
+        raise ConfigError(f"unknown source preset {str(preset)!r} (available: {', '.join(preset_names())})")
+    table = preset_values("source", preset)
+    world_fields = world_keys()
     calibration = {key: value for key, value in table.items() if key in CALIBRATION_KEYS}
     settings: dict[str, Any] = {}
     for key, value in table.items():
         if key in CALIBRATION_KEYS:
             continue
-        if key in SETTINGS:
-            expected = SETTINGS[key]
-        elif key in world_fields:
-            expected = {"int": int, "float": float, "bool": bool}.get(str(world_fields[key]), float)
-        else:
+        expected = SETTINGS.get(key) or world_fields.get(key)
+        if expected is None:
             raise ConfigError(
-                f"{path}: unknown key {key!r} (calibration: {', '.join(CALIBRATION_KEYS)}; "
+                f"{where}: unknown key {key!r} (calibration: {', '.join(CALIBRATION_KEYS)}; "
                 f"settings: {', '.join([*SETTINGS, *world_fields])})"
             )
-        ok = isinstance(value, bool) if expected is bool else isinstance(value, (int, float)) and not isinstance(value, bool)
-        if not ok or (expected is int and not isinstance(value, int)):
-            raise ConfigError(f"{path}: key {key!r} must be {expected.__name__}, got {value!r}")
-        settings[key] = expected(value)
-    camera = camera_from_mapping(calibration, str(path)) if calibration else None
+        settings[key] = check_setting(key, value, expected, where)
+    camera = camera_from_mapping(calibration, where) if calibration else None
     return camera, settings
 
 
@@ -101,15 +141,25 @@ def open_source(
     calibration: str | Path | Camera | None = None,
     mono: bool = False,
     origin: int | None = None,
+    world: Mapping[str, Any] | None = None,
 ) -> FrameSource:
     """Open the source named by ``spec`` (module docstring) with frames ``start:stop:step``.
 
     ``mono`` drops the right image of stereo sources (less to read for monocular estimators).
     ``origin``: the frame whose pose is the ground truth's origin (default: the first selected).
+    ``world``: synthetic world settings (``world_keys()``) over the preset's.
     Raises SourceError (bad spec or data) or ConfigError (bad preset) with one line naming the file.
     """
     kind, target = parse_spec(spec)
     preset_camera, settings = load_preset(preset) if preset is not None else (None, {})
+    if world:
+        keys = world_keys()
+        for key, value in world.items():
+            if key not in keys:
+                raise ConfigError(f"world key {key!r} is not a setting of the synthetic world ({', '.join(keys)})")
+            if kind != "synthetic":
+                raise ConfigError(f"world key {key!r} applies to the synthetic world only, not to {spec}")
+            settings[key] = check_setting(key, value, keys[key], "world settings")
     if isinstance(calibration, Camera):
         camera = calibration
     elif calibration is not None:

@@ -268,9 +268,11 @@ class ViewerService(Service):
         return data
 
 
-def _map_items(message: MapUpdate | MapSnapshot) -> tuple[list[tuple[int, float, float]], list[tuple[int, int, bool]]]:
+def _map_items(message: MapUpdate | MapSnapshot) -> tuple[list[tuple[int, float, float]], list[tuple[int, int, int]]]:
+    """Experiences (id, x, y) and links (source, target, kind): kind 0 odometric, 1 a closure the map
+    kept, 2 one it refused."""
     return ([(e.id, e.x, e.y) for e in message.experiences],
-            [(link.source, link.target, link.loop_closure) for link in message.links])
+            [(link.source, link.target, 0 if not link.loop_closure else 1 if link.accepted else 2) for link in message.links])
 
 
 def _read_static() -> dict[str, tuple[bytes, str]]:

@@ -201,33 +201,33 @@ class ViewerState:
         self.loop_closure_count += 1
         self.revision += 1
 
-    def on_map_update(self, seq: int, experiences: list[tuple[int, float, float]], links: list[tuple[int, int, bool]],
+    def on_map_update(self, seq: int, experiences: list[tuple[int, float, float]], links: list[tuple[int, int, int]],
                       experience_count: int, link_count: int) -> bool:
         """Experiences created or moved and links created at frame `seq`. Returns True when the
         map held here has fewer experiences or links than the update says the map has (some
         updates were missed: ask for a snapshot)."""
         for experience_id, x, y in experiences:
             self.experiences[experience_id] = (_r(x), _r(y))
-        for source, target, loop_closure in links:
-            self.links[(source, target)] = loop_closure
+        for source, target, kind in links:
+            self.links[(source, target)] = kind
         self.experience_count, self.link_count = experience_count, link_count
         self.map_seq = seq
         self._map_changed()
         return len(self.experiences) < experience_count or len(self.links) < link_count
 
     def on_map_snapshot(self, seq: int, experiences: list[tuple[int, float, float]],
-                        links: list[tuple[int, int, bool]]) -> None:
+                        links: list[tuple[int, int, int]]) -> None:
         """The whole map as of frame `seq` (the `map/snapshot` reply). It replaces what is held,
         unless updates newer than it were applied meanwhile: then it only fills in what is missing."""
         if self.map_seq is None or seq >= self.map_seq:
             self.experiences = {experience_id: (_r(x), _r(y)) for experience_id, x, y in experiences}
-            self.links = {(source, target): loop_closure for source, target, loop_closure in links}
+            self.links = {(source, target): kind for source, target, kind in links}
             self.map_seq = seq
         else:
             for experience_id, x, y in experiences:
                 self.experiences.setdefault(experience_id, (_r(x), _r(y)))
-            for source, target, loop_closure in links:
-                self.links.setdefault((source, target), loop_closure)
+            for source, target, kind in links:
+                self.links.setdefault((source, target), kind)
         self.experience_count = max(self.experience_count, len(self.experiences))
         self.link_count = max(self.link_count, len(self.links))
         self._map_changed()
@@ -300,7 +300,7 @@ class ViewerState:
             "latency_ms": _r(1000 * median(samples), 1) if samples else None,
             "latency_stage": latency_stage if samples else None,
             "loop_closures": self.loop_closure_count,
-            "loop_closure_links": sum(self.links.values()),
+            "loop_closure_links": sum(kind == 1 for kind in self.links.values()),
             "experiences": self.experience_count,
             "links": self.link_count,
             "templates": None if self.template is None else self.template["count"],

@@ -14,14 +14,17 @@ from pathlib import Path
 from tests.netutil import REPO, endpoint, free_port
 
 GRIDSLAM = [sys.executable, "-m", "services.cli"]
-FRAMES = 200
+# A 6 m × 4 m loop (174 frames a lap): lap 2 confirms closures from about frame 182 on, so the
+# loop-closure and map services are killed while closures are being voted and measured.
+WORLD = ["--world", "length=6", "--world", "breadth=4"]
+FRAMES = 260
 # Kill each service once the map holds this many frames.
-KILLS = {"source": 30, "egomotion": 60, "gridcells": 90, "loopclosure": 120, "expmap": 150}
+KILLS = {"source": 30, "egomotion": 60, "gridcells": 90, "loopclosure": 195, "expmap": 225}
 
 
 def run_args(out: Path, port: int) -> list[str]:
     # The passthrough estimator is deterministic (stereo's RANSAC draws differ from run to run).
-    return GRIDSLAM + ["run", "--source", "synthetic:0", "--preset", "synthetic", "--egomotion", "passthrough",
+    return GRIDSLAM + ["run", "--source", "synthetic:0", "--preset", "synthetic", "--egomotion", "passthrough", *WORLD,
                        "--n-frames", str(FRAMES), "--listen", endpoint(port), "--out", str(out)]
 
 
@@ -82,7 +85,10 @@ def test_kill_each_service_in_turn(tmp_path):
     assert [step["frame"] for step in steps[1:]] == list(range(FRAMES))   # each frame once, in order
     assert steps == journal(reference / "experience_map.log")
     assert journal(faulty / "view_templates.log") == journal(reference / "view_templates.log")
-    assert (faulty / "loop_closures.csv").read_text() == (reference / "loop_closures.csv").read_text()
+    closures = (reference / "loop_closures.csv").read_text()
+    closure_frames = [int(line.split(",")[0]) for line in closures.splitlines()[1:]]
+    assert min(closure_frames) < KILLS["loopclosure"] and max(closure_frames) > KILLS["expmap"], closure_frames
+    assert (faulty / "loop_closures.csv").read_text() == closures
     assert metrics["stages"]["map"]["frames"] == FRAMES and metrics["stages"]["map"]["missing_frames"] == 0
 
 

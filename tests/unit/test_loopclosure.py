@@ -171,7 +171,7 @@ def test_template_size_crop_and_normalisation():
 
 def compare_with_exhaustive(templates: ViewTemplates, patches) -> tuple[list, list]:
     fast = [templates.best_match(p) for p in patches]
-    exhaustive_params = replace(templates.params, candidates=len(templates) + 1)
+    exhaustive_params = replace(templates.params, matcher="exhaustive")
     saved, templates.params = templates.params, exhaustive_params
     try:
         slow = [templates.best_match(p) for p in patches]
@@ -180,7 +180,7 @@ def compare_with_exhaustive(templates: ViewTemplates, patches) -> tuple[list, li
     return fast, slow
 
 
-def test_the_prefilter_finds_the_exhaustive_best_match_on_random_views():
+def test_the_index_finds_the_exhaustive_best_match_on_random_views():
     rng = np.random.default_rng(3)
     templates = make_store(1000, TemplateParams(), rng)
     frames = query_frames(templates, 25, rng)
@@ -200,16 +200,16 @@ def nubot_config() -> LoopClosureConfig:
     return load_config(LoopClosureConfig, "loopclosure", preset="nubot")
 
 
-def test_the_prefilter_matches_like_the_exhaustive_search_on_nubot(nubot_images):
+def test_the_index_matches_like_the_exhaustive_search_on_nubot(nubot_images):
     config = nubot_config()
     fast = ViewTemplates(config.template_params())
-    exhaustive = ViewTemplates(replace(config.template_params(), candidates=NUBOT_FRAMES + 1))
+    exhaustive = ViewTemplates(replace(config.template_params(), matcher="exhaustive"))
     fast_matches = [fast.observe(image, k) for k, image in enumerate(nubot_images)]
     slow_matches = [exhaustive.observe(image, k) for k, image in enumerate(nubot_images)]
     assert fast_matches == slow_matches
-    # Every frame against every template (also the far ones a frame does not match), with a
-    # prefilter so narrow that it must rank the right template among its best few.
-    fast.params = replace(fast.params, candidates=4)
+    # Every frame against every template (also the far ones a frame does not match), with an
+    # index search so narrow that it must rank the right template among its best two per shift.
+    fast.params = replace(fast.params, candidates=2)
     patches = [fast.template_of(image) for image in nubot_images]
     quick, full = compare_with_exhaustive(fast, patches)
     matched = [q for q, f in zip(quick, full) if f[1] <= config.match_threshold]

@@ -4,6 +4,7 @@ truth, stereo consistent with depth, and places that look the same on every lap.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 
 import cv2
@@ -189,3 +190,28 @@ def test_scanline_profile_shift_follows_the_turn(world):
     # Near the image centre one pixel subtends 1/fx radians.
     assert math.degrees(shift / world.camera.fx) == pytest.approx(math.degrees(world[seq + 1].odometry[2]), abs=1.0)
     assert abs(math.degrees(world[seq + 1].odometry[2])) > 3
+
+
+# SHA-256 of frames of synthetic:0 (synthetic preset: both images, ground truth, odometry) and of
+# one depth map, recorded before the campus layout was added: the corridor world, the default,
+# must render exactly as it did (documented numbers and other tests depend on its frames).
+CORRIDOR_FRAME_HASHES = {
+    0: "1c19359d6da696ae5927017b97a439e220e2f6b3997fe07f7a68518b64169d81",
+    1: "2697c48773c903a80657942386bb222479816f78ac7ca3e72d952885a6d69a24",
+    100: "705ee6b46c2ca4ed5a8b9ef0efeda2991f297a23b638ba0356c5701ee3ee7c45",
+    373: "7f3f25ffe8ec00b57cb7f76fdfa1888800ee25f42796bed8ffb68eb027791799",
+    500: "a39a6c7ad37ee5a0b13c735c69e526bfb0d8a448e74ad21069385ffb6a9a8cde",
+}
+CORRIDOR_DEPTH_42_HASH = "ccb02e8b73b6fd711f236530c75b2ec104149f9bea52e0bc933f2ceea9a37ba8"
+HASHED_WITH = ("5.0.0", "2.4.6")  # OpenCV and numpy versions the hashes were taken with
+
+
+@pytest.mark.skipif((cv2.__version__, np.__version__) != HASHED_WITH,
+                    reason=f"frame hashes recorded with OpenCV/numpy {HASHED_WITH}; rendering may round differently")
+def test_corridor_frames_are_unchanged():
+    source = open_source("synthetic:0", preset="synthetic")
+    for seq, expected in CORRIDOR_FRAME_HASHES.items():
+        frame = source[seq]
+        data = frame.left.tobytes() + frame.right.tobytes() + np.asarray(frame.ground_truth).tobytes() + np.asarray(frame.odometry).tobytes()
+        assert hashlib.sha256(data).hexdigest() == expected, f"frame {seq} of synthetic:0 changed"
+    assert hashlib.sha256(source.depth(42).tobytes()).hexdigest() == CORRIDOR_DEPTH_42_HASH

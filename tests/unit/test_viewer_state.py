@@ -113,7 +113,8 @@ def test_counters_frame_rate_latency_and_totals():
             state.on_map_pose(seq, 0.1 * seq, 0.0, 0.0, 3, now=t + 0.05)
     state.on_loop_closure(frame=20, matched_frame=2, matched_template=1, votes=7)
     state.on_view_template(20, template_id=1, is_new=False, distance=0.04, matched_frame=2, template_count=9)
-    state.on_map_update(20, [(0, 0.0, 0.0), (1, 1.0, 0.0)], [(0, 1, False), (1, 0, True)], 2, 2)
+    # Links by kind: odometric, a closure the map kept, one it refused (not counted as a closure link).
+    state.on_map_update(20, [(0, 0.0, 0.0), (1, 1.0, 0.0), (2, 5.0, 0.0)], [(0, 1, 0), (1, 0, 1), (2, 0, 2)], 3, 3)
     state.on_liveliness("gridcells", "a", True)
     state.on_liveliness("viewer", "v", True)
     state.on_liveliness("egomotion", "b", False)
@@ -123,7 +124,7 @@ def test_counters_frame_rate_latency_and_totals():
     assert counters["frame"] == 20 and counters["rate_hz"] == pytest.approx(20.0)
     assert counters["latency_stage"] == "map" and counters["latency_ms"] == pytest.approx(50.0)
     assert counters["loop_closures"] == 1 and counters["loop_closure_links"] == 1
-    assert counters["experiences"] == 2 and counters["templates"] == 9 and counters["saturations"] == 1
+    assert counters["experiences"] == 3 and counters["templates"] == 9 and counters["saturations"] == 1
     # Decode errors of every service; gaps of the pipeline only (a viewer skips frames on purpose).
     assert counters["decode_errors"] == 3 and counters["gaps"] == 3 and counters["services_alive"] == 2
     assert as_json(state, now=10.0)["counters"]["rate_hz"] == 0.0   # stalled: no frames in the window

@@ -10,7 +10,7 @@ const ARROW_GAIN = 4;          // the lattice shift arrow is drawn this many tim
 
 const tracks = Object.fromEntries(STAGES.map((stage) => [stage, { epoch: null, points: [], pose: null }]));
 const experiences = new Map(); // id → [x, y]
-let links = [];                // [source, target, loop closure 0/1]
+let links = [];                // [source, target, kind: 0 odometric, 1 closure kept, 2 closure refused]
 let currentExperience = null;
 let updates = 0;
 let drawPending = false;
@@ -209,15 +209,17 @@ function draw() {
   for (const [x, y] of experiences.values()) dots.push(`M${sx(x)},${sy(y)}h0`);
   $("experience-dots").setAttribute("d", dots.join(""));
   $("experience-dots").dataset.count = String(experiences.size);
-  const plain = [], closing = [];
-  for (const [source, target, loop] of links) {
+  const paths = [[], [], []];   // odometric, closures kept, closures refused
+  for (const [source, target, kind] of links) {
     const a = experiences.get(source), b = experiences.get(target);
     if (!a || !b) continue;
-    (loop ? closing : plain).push(`M${sx(a[0])},${sy(a[1])}L${sx(b[0])},${sy(b[1])}`);
+    paths[kind].push(`M${sx(a[0])},${sy(a[1])}L${sx(b[0])},${sy(b[1])}`);
   }
-  $("links").setAttribute("d", plain.join(""));
-  $("loop-links").setAttribute("d", closing.join(""));
-  $("loop-links").dataset.count = String(closing.length);
+  $("links").setAttribute("d", paths[0].join(""));
+  $("loop-links").setAttribute("d", paths[1].join(""));
+  $("loop-links").dataset.count = String(paths[1].length);
+  $("refused-links").setAttribute("d", paths[2].join(""));
+  $("refused-links").dataset.count = String(paths[2].length);
   const current = currentExperience === null ? undefined : experiences.get(currentExperience);
   $("current-experience").setAttribute("cx", current ? sx(current[0]) : "-100");
   $("current-experience").setAttribute("cy", current ? sy(current[1]) : "-100");

@@ -1,0 +1,144 @@
+"""`gridslam bench mapping --sizes 1000,10000,100000 [--json FILE]`: cost per frame of template
+matching and of the map update as the map grows, and the memory it takes.
+
+For each size N, in a fresh process (so that its resident memory is its own):
+
+- **templates**: N view templates (realistic smooth scenes, services/loopclosure/bench.py) in
+  the default matcher (the nearest-neighbour index with exact verification); then `--frames`
+  frames observed, half of them views of stored templates (a revisit: shifted, re-lit, noisy),
+  half new views. Each frame's ViewTemplates.observe is timed.
+- **map**: an ExperienceMap (the defaults: gtsam pose graph, metric closures) grown to N
+  experiences by a robot driving laps of a 1 km circuit (one experience per frame, odometry with
+  noise), with a closure to the experience one lap back every `--build-closure-every` frames;
+  then `--frames` more frames timed, in which revisits confirm a closure on `--closure-frames`
+  consecutive frames of every 100 (a closure burst, as a revisit gives).
+
+The JSON (`--json`) is a list of objects with the keys size, match_ms_p50, match_ms_p99,
+map_ms_p50, map_ms_p99, rss_mib (and map_closure_ms_p50: the median of the closure frames).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+CIRCUIT_M = 1000.0   # one lap: 1000 experiences 1 m apart
+
+
+def rss_mib() -> float:
+    with open("/proc/self/status") as handle:
+        for line in handle:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def circuit_pose(k: int) -> tuple[float, float, float]:
+    """The true pose of frame k on the circuit (a circle, counter-clockwise, 1 m per frame)."""
+    radius = CIRCUIT_M / (2 * math.pi)
+    angle = k / radius
+    return radius * math.sin(angle), radius * (1 - math.cos(angle)), angle
+
+
+def map_stream(size: int, frames: int, build_every: int, burst: int, seed: int):
+    """(frame, odometry pose, template, closure or None, timed?) for `size` + `frames` frames."""
+    from services.expmap.graph import ClosureInput, between, compose
+
+    rng = np.random.default_rng(seed)
+    lap = int(CIRCUIT_M)
+    odometry = (0.0, 0.0, 0.0)
+    covariance = tuple(np.diag([0.02 ** 2, 0.02 ** 2, 0.002 ** 2]).ravel())
+    for k in range(size + frames):
+        if k:
+            step = between(circuit_pose(k - 1), circuit_pose(k))
+            odometry = compose(odometry, (step[0] + rng.normal(0, 0.01), step[1] + rng.normal(0, 0.01),
+                                          step[2] + rng.normal(0, 0.001)))
+        timed = k >= size
+        closing = k >= lap and ((timed and (k - size) % 100 < burst) or (not timed and k % build_every == 0))
+        closure = None
+        if closing:   # the place of one lap ago, measured within 2 cm and 0.1°
+            z = between(circuit_pose(k - lap), circuit_pose(k))
+            closure = ClosureInput(k - lap, k - lap, "stereo", z[0] + rng.normal(0, 0.02), z[1] + rng.normal(0, 0.02),
+                                   z[2] + rng.normal(0, 0.002), covariance)
+        yield k, odometry, k, closure, timed
+
+
+def measure(size: int, frames: int, build_every: int, burst: int, seed: int) -> dict:
+    """One size, in this process."""
+    from services.expmap.graph import ExperienceMap, MapParams
+    from services.loopclosure.bench import make_store, query_frames, random_scenes
+    from services.loopclosure.templates import TemplateParams
+
+    rng = np.random.default_rng(seed)
+    params = TemplateParams()
+    templates = make_store(size, params, rng)
+    revisits = query_frames(templates, frames // 2, rng)
+    new = random_scenes(frames - frames // 2, 120, 640, rng)
+    images = [image for _, image in revisits] + [(scene * 255).astype(np.uint8) for scene in new]
+    order = rng.permutation(len(images))
+    match_ms = []
+    for i in order:
+        started = time.perf_counter()
+        templates.observe(images[i], size + int(i))
+        match_ms.append(1e3 * (time.perf_counter() - started))
+
+    experience_map = ExperienceMap(MapParams())
+    map_ms, closure_ms = [], []
+    for frame, odometry, template, closure, timed in map_stream(size, frames, build_every, burst, seed):
+        started = time.perf_counter()
+        experience_map.step(frame, odometry, template, closure)
+        if timed:
+            elapsed = 1e3 * (time.perf_counter() - started)
+            map_ms.append(elapsed)
+            if closure is not None:
+                closure_ms.append(elapsed)
+    return {"size": size, "match_ms_p50": float(np.median(match_ms)), "match_ms_p99": float(np.percentile(match_ms, 99)),
+            "map_ms_p50": float(np.median(map_ms)), "map_ms_p99": float(np.percentile(map_ms, 99)),
+            "map_closure_ms_p50": float(np.median(closure_ms)) if closure_ms else None, "rss_mib": rss_mib(),
+            "experiences": len(experience_map), "closures_accepted": experience_map.closures["accepted"],
+            "templates": len(templates)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="gridslam bench mapping", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", default="1000,10000,100000", help="comma-separated map sizes (templates and experiences)")
+    parser.add_argument("--frames", type=int, default=400, help="frames timed per size")
+    parser.add_argument("--closure-frames", type=int, default=10, help="frames of every 100 timed that confirm a closure")
+    parser.add_argument("--build-closure-every", type=int, default=2000, help="a closure every this many frames while growing")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, help="write the results as a JSON list to this file")
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)   # internal: measure one size here, print JSON
+    args = parser.parse_args(argv)
+    if args.one is not None:
+        print(json.dumps(measure(args.one, args.frames, args.build_closure_every, args.closure_frames, args.seed)))
+        return 0
+    sizes = [int(v) for v in args.sizes.split(",") if v.strip()]
+    results = []
+    print(f"{args.frames} frames timed per size; closures on {args.closure_frames} of every 100; medians and p99 in ms")
+    print()
+    print("| size | match p50 | match p99 | map p50 | map p99 | map, closure frames p50 | RSS MiB |")
+    print("|---:|---:|---:|---:|---:|---:|---:|")
+    for size in sizes:
+        command = [sys.executable, "-m", "services.cli", "bench", "mapping", "--one", str(size), "--frames", str(args.frames),
+                   "--closure-frames", str(args.closure_frames), "--build-closure-every", str(args.build_closure_every),
+                   "--seed", str(args.seed)]
+        row = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
+        results.append(row)
+        print(f"| {size:,} | {row['match_ms_p50']:.2f} | {row['match_ms_p99']:.2f} | {row['map_ms_p50']:.2f} "
+              f"| {row['map_ms_p99']:.2f} | {row['map_closure_ms_p50'] or 0:.2f} | {row['rss_mib']:.0f} |", flush=True)
+    if len(results) > 1:
+        first, last = results[0], results[-1]
+        print()
+        print(f"{last['size']:,} vs {first['size']:,}: matching ×{last['match_ms_p50'] / first['match_ms_p50']:.2f}, "
+              f"map update ×{last['map_ms_p50'] / first['map_ms_p50']:.2f} (medians); memory "
+              f"{(last['rss_mib'] - first['rss_mib']) / (last['size'] - first['size']) * 1000:.1f} MiB per 1k")
+    if args.json is not None:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    return 0
