@@ -9,6 +9,7 @@ from pathlib import Path
 from services.egomotion import ESTIMATORS
 from services.egomotion.offline import run_offline, summary_rows
 from services.evaluation.results import format_table
+from services.source.spec import add_bag_arguments, bag_settings
 
 
 def register(subparsers) -> None:
@@ -20,7 +21,7 @@ def register(subparsers) -> None:
         "and trajectory.png; print a metric table.",
     )
     parser.add_argument("--source", required=True, metavar="SPEC",
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
     parser.add_argument("--estimator", metavar="NAME", help=f"{', '.join(ESTIMATORS)} (default: the one the preset or config names)")
     parser.add_argument("--preset", metavar="NAME", help="dataset preset for the source and the estimator (nubot, kitti, stlucia, synthetic)")
     parser.add_argument("--config", type=Path, metavar="FILE", help="estimator TOML overriding the preset (docs/egomotion.md)")
@@ -33,6 +34,7 @@ def register(subparsers) -> None:
                         help="reference to score against, row k = frame k: TUM, KITTI poses, or a CSV of increments "
                         "(forward,left,yaw or LIBVISO2's table)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
+    add_bag_arguments(parser)
     parser.set_defaults(func=run)
 
 
@@ -49,6 +51,7 @@ def run(args) -> int:
         n_frames=args.n_frames,
         reference=args.reference,
         out=args.out,
+        topics=bag_settings(args),
     )
     print(format_table(summary_rows(result)))
     print(f"results: {folder}")

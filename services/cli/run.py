@@ -8,11 +8,12 @@ from pathlib import Path
 
 from services.common.config import load_config
 from services.common.runtime import DEFAULT_ROUTER
+from services.source.spec import add_bag_arguments, bag_settings
 
 
 def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--source", required=source_required,
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
     parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
@@ -31,6 +32,9 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
                         help="skip loop closure and the experience map")
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
+    parser.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
+                        help="do not write run.mcap (nor keep the camera images for it)")
+    add_bag_arguments(parser)
 
 
 def register(subparsers) -> None:
@@ -75,7 +79,8 @@ def execute(args, **defaults) -> int:
 
     flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
              "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view}
+             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view, "mcap": args.mcap,
+             **bag_settings(args)}
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
     progress = Progress()
     try:

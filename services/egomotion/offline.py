@@ -140,6 +140,7 @@ def run_offline(
     reference: str | Path | None = None,
     out: Path | None = None,
     results_root: Path = Path("results"),
+    topics: dict | None = None,
 ) -> tuple[OdometryResult, Path]:
     """Open the source ``spec``, build the estimator from the preset and config file, run
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
@@ -170,6 +171,7 @@ def run_offline(
         preset=preset if preset in source_spec.preset_names() else None,
         calibration=calibration,
         mono=name != "stereo",
+        topics=topics,   # a ROS bag's topics (source/spec.py)
     )
     estimator_instance = make_estimator(name, getattr(source, "camera", None), all_params[name])
     reference_trajectory = load_reference(reference) if reference is not None else None
@@ -183,6 +185,7 @@ def run_offline(
         "stop": stop,
         "step": step,
         "reference": None if reference is None else str(reference),
+        **{key: value for key, value in (topics or {}).items() if value is not None},
         "camera": None if getattr(source, "camera", None) is None else dataclasses.asdict(source.camera),
         "estimator": estimator_config(estimator_instance),
     }

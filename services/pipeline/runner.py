@@ -30,7 +30,8 @@ from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
-from services.source.spec import open_source
+from services.ros.mcap_export import write_after_run
+from services.source.spec import bag_settings, open_source
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,12 @@ class RunConfig(BaseModel):
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
     view: str | None = Field(None, description="Also run the viewer, serving HTTP on this host:port.")
     stall_timeout: float = Field(60.0, gt=0, description="Fail when no frame completes for this many seconds.")
+    mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
+    image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
+    right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
+    camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
+    odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
+    stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
 
 
 @dataclass
@@ -258,6 +265,8 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
         args += ["--preset", config.preset]
     if config.calibration is not None:
         args += ["--calibration", str(config.calibration)]
+    for key, value in bag_settings(config).items():
+        args += [f"--{key.replace('_', '-')}", str(value)] if value is not None else []
     return args + (["--stop", str(stop)] if stop is not None else [])
 
 
@@ -276,7 +285,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         check_port_free(config.listen)
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=config.preset,
-                         calibration=config.calibration)
+                         calibration=config.calibration, topics=bag_settings(config))
     total = None if getattr(frames, "live", False) else len(frames)
     folder = results_dir(out)
     write_config(folder / "config.json", config)
@@ -292,7 +301,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         for name in stages + (["viewer"] if config.view else []):
             supervisor.start(name, service_args(config, name, folder))
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
-        with Recorder(runtime) as recorder:
+        with Recorder(runtime, camera_images=config.mcap) as recorder:
             _wait_for_services(supervisor, recorder, stages)
             supervisor.start("source", source_args(config, config.start, ack_topic))
             _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
@@ -309,6 +318,8 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         recording.final_map = {step.frame: (x[i], y[i], heading[i]) for i, step in enumerate(map_log.steps)}
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
     result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
+    if config.mcap:
+        result["summary"]["run_mcap"] = write_after_run(folder, recording, trajs, config)
     write_report(folder, recording, result, trajs)
     return RunResult(folder, result)
 

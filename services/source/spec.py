@@ -6,11 +6,14 @@
     video:FILE      video file OpenCV decodes (datasets.VideoFile)
     camera:N        live camera N (or a device path / stream URL), newest frame only (camera.LiveCamera)
     synthetic:SEED  procedural world rendered on the fly (synthetic.SyntheticWorld)
+    rosbag:PATH     ROS 1 .bag, or ROS 2 bag folder / .db3 / .mcap file (rosbag.RosbagSource; extra `ros`)
 
 A preset (``services/source/presets/<name>.toml``, or a path to such a file) is a flat TOML
-table of calibration keys (calibration.py) and source settings (``fps``, ``grey``, and for the
-synthetic world the fields of ``synthetic.WorldConfig``). An explicit calibration (a file of our
-format or a Camera) wins over the preset's, and either wins over the dataset's own.
+table of calibration keys (calibration.py) and source settings (``fps``, ``grey``, the topics of a
+ROS bag, and for the synthetic world the fields of ``synthetic.WorldConfig``). An explicit
+calibration (a file of our format or a Camera) wins over the preset's, and either wins over the
+dataset's own. A preset describes a dataset however it is stored: its bag topics are ignored by
+the other kinds (St Lucia is a video and a bag).
 """
 
 from __future__ import annotations
@@ -25,9 +28,35 @@ from services.source.calibration import CALIBRATION_KEYS, camera_from_mapping, r
 from services.source.frames import Camera, FrameSource, SourceError
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
-KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic")
+KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag")
+# The topics of a ROS bag (rosbag.RosbagSource), preset keys and flags of the same names.
+TOPIC_SETTINGS = ("image_topic", "right_image_topic", "camera_info_topic", "odom_topic")
 # Source settings a preset may hold besides the calibration, with their types.
-SETTINGS: dict[str, type] = {"fps": float, "grey": bool}
+SETTINGS: dict[str, type] = {"fps": float, "grey": bool, **dict.fromkeys(TOPIC_SETTINGS, str),
+                             "stereo_tolerance": float}
+
+
+# Flags (and TOML keys) of the ROS bag settings, shared by `gridslam run`, `odometry` and the
+# source service.
+BAG_FLAG_HELP = {
+    "image_topic": "ROS bag: image topic, sensor_msgs/Image or CompressedImage (default: the bag's only one)",
+    "right_image_topic": "ROS bag: right image topic of a stereo pair, matched by stamp",
+    "camera_info_topic": "ROS bag: sensor_msgs/CameraInfo topic (default: the image topic's camera_info)",
+    "odom_topic": "ROS bag: nav_msgs/Odometry topic (passthrough estimator; ground truth where the run has none)",
+    "stereo_tolerance": "ROS bag: seconds between the stamps of a stereo pair, at most (default 0.005)",
+}
+
+
+def add_bag_arguments(parser) -> None:
+    """The ROS bag flags (--image-topic, ...) on an argparse parser; the defaults are None."""
+    for key, help_text in BAG_FLAG_HELP.items():
+        parser.add_argument(f"--{key.replace('_', '-')}", type=float if key == "stereo_tolerance" else str,
+                            metavar="S" if key == "stereo_tolerance" else "TOPIC", help=help_text)
+
+
+def bag_settings(values) -> dict:
+    """The ROS bag settings of an argparse namespace or a config model (None where not given)."""
+    return {key: getattr(values, key, None) for key in BAG_FLAG_HELP}
 
 
 def preset_names() -> list[str]:
@@ -75,7 +104,10 @@ def load_preset(preset: str | Path) -> tuple[Camera | None, dict[str, Any]]:
                 f"{path}: unknown key {key!r} (calibration: {', '.join(CALIBRATION_KEYS)}; "
                 f"settings: {', '.join([*SETTINGS, *world_fields])})"
             )
-        ok = isinstance(value, bool) if expected is bool else isinstance(value, (int, float)) and not isinstance(value, bool)
+        if expected is str:
+            ok = isinstance(value, str)
+        else:
+            ok = isinstance(value, bool) if expected is bool else isinstance(value, (int, float)) and not isinstance(value, bool)
         if not ok or (expected is int and not isinstance(value, int)):
             raise ConfigError(f"{path}: key {key!r} must be {expected.__name__}, got {value!r}")
         settings[key] = expected(value)
@@ -101,15 +133,20 @@ def open_source(
     calibration: str | Path | Camera | None = None,
     mono: bool = False,
     origin: int | None = None,
+    topics: dict[str, str | float | None] | None = None,
 ) -> FrameSource:
     """Open the source named by ``spec`` (module docstring) with frames ``start:stop:step``.
 
     ``mono`` drops the right image of stereo sources (less to read for monocular estimators).
     ``origin``: the frame whose pose is the ground truth's origin (default: the first selected).
+    ``topics``: a ROS bag's topics (TOPIC_SETTINGS) and ``stereo_tolerance``, over the preset's;
+    None values are left to the preset.
     Raises SourceError (bad spec or data) or ConfigError (bad preset) with one line naming the file.
     """
     kind, target = parse_spec(spec)
     preset_camera, settings = load_preset(preset) if preset is not None else (None, {})
+    bag = {key: settings.pop(key) for key in (*TOPIC_SETTINGS, "stereo_tolerance") if key in settings}
+    bag.update({key: value for key, value in (topics or {}).items() if value is not None})
     if isinstance(calibration, Camera):
         camera = calibration
     elif calibration is not None:
@@ -118,7 +155,8 @@ def open_source(
         camera = preset_camera
     grey = settings.pop("grey", False)
     fps = settings.pop("fps", None)
-    if kind != "synthetic" and settings:
+    # A bag may be a recording of the synthetic world: the world's keys then describe what it holds.
+    if kind not in ("synthetic", "rosbag") and settings:
         raise ConfigError(f"preset {preset}: key {next(iter(settings))!r} applies to the synthetic world only")
     selection = dict(start=start, stop=stop, step=step)
     if kind in ("kitti", "stereo", "images"):
@@ -133,6 +171,13 @@ def open_source(
         from services.source.datasets import VideoFile
 
         return VideoFile(target, camera=camera, fps=fps, grey=grey, **selection)
+    if kind == "rosbag":
+        from services.source.rosbag import RosbagSource
+
+        unknown = sorted(set(bag) - {*TOPIC_SETTINGS, "stereo_tolerance"})
+        if unknown:
+            raise ConfigError(f"unknown ROS bag setting {unknown[0]!r}")
+        return RosbagSource(target, camera=camera, grey=grey, mono=mono, origin=origin, **bag, **selection)
     if kind == "camera":
         from services.source.camera import LiveCamera
 
