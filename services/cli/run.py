@@ -32,6 +32,8 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
                         help="skip loop closure and the experience map")
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
+    parser.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
+                        help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (default 8765; extra `foxglove`)")
     parser.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
                         help="do not write run.mcap (nor keep the camera images for it)")
     add_bag_arguments(parser)
@@ -79,7 +81,7 @@ def execute(args, **defaults) -> int:
 
     flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
              "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view, "mcap": args.mcap,
+             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view, "mcap": args.mcap, "foxglove": args.foxglove,
              **bag_settings(args)}
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
     progress = Progress()

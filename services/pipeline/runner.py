@@ -30,6 +30,7 @@ from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
+from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
 from services.source.spec import bag_settings, open_source
 
@@ -77,6 +78,7 @@ class RunConfig(BaseModel):
     view: str | None = Field(None, description="Also run the viewer, serving HTTP on this host:port.")
     stall_timeout: float = Field(60.0, gt=0, description="Fail when no frame completes for this many seconds.")
     mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
+    foxglove: int | None = Field(None, ge=0, le=65535, description="Also serve the run live to Foxglove on this port (loopback).")
     image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
     right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
     camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
@@ -247,6 +249,8 @@ def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
         args += ["--decoder", config.decoder] if config.decoder else []
     if name == "viewer":
         args += ["--http", config.view]
+    if name == "foxglove":
+        args += ["--port", str(config.foxglove)]
     if name == "loopclosure":
         args += ["--out", str(folder), "--store", str(folder / TEMPLATE_LOG)]
     if name == "expmap":
@@ -283,6 +287,10 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     stop_event = stop_event or threading.Event()
     if config.connect is None:
         check_port_free(config.listen)
+    if config.foxglove is not None:   # fail now, in one line, rather than lose the live view quietly
+        check_foxglove_available()
+        if config.foxglove:
+            check_port_free(f"tcp/127.0.0.1:{config.foxglove}")
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=config.preset,
                          calibration=config.calibration, topics=bag_settings(config))
@@ -298,7 +306,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         if config.connect is None:
             router = supervisor.start("router", ["router", "--listen", config.listen])
             wait_port_open(config.listen, router.process)
-        for name in stages + (["viewer"] if config.view else []):
+        for name in stages + (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []):
             supervisor.start(name, service_args(config, name, folder))
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
         with Recorder(runtime, camera_images=config.mcap) as recorder:
