@@ -20,12 +20,15 @@ def planar_from_camera(pose: np.ndarray) -> tuple[float, float, float]:
 
 
 def write_bag(path: Path, frames, *, fmt: str = "mcap", stereo: bool = True, compression: str | None = None,
-              encoding: str = "mono8", odometry: bool = True, camera_info: bool = True) -> Path:
+              encoding: str = "mono8", odometry: bool = True, camera_info: bool = True, left_topic: str = LEFT,
+              odom_topic: str = ODOM, right_delays: dict[int, float] | None = None) -> Path:
     """Write `frames` (gridslam Frames) into a bag at `path`; returns the path to open.
 
     compression None writes sensor_msgs/Image in `encoding` (mono8 from grey frames, or
-    rgb8/bgr8/mono16 converted from them); "png" or "jpeg" writes sensor_msgs/CompressedImage
-    on `<topic>/compressed`. Message record times are the frame stamps."""
+    rgb8/bgr8/mono16 converted from them; any other name is written as mono8 bytes under that
+    name); "png" or "jpeg" writes sensor_msgs/CompressedImage on `<topic>/compressed`. Message
+    record times are the frame stamps; `right_delays` (frame index → seconds) stamps some right
+    images late."""
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin, Writer as Writer2
     from rosbags.typesys import Stores, get_typestore
@@ -39,7 +42,8 @@ def write_bag(path: Path, frames, *, fmt: str = "mcap", stereo: bool = True, com
         writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP if fmt == "mcap" else StoragePlugin.SQLITE3)
     image_type = "sensor_msgs/msg/CompressedImage" if compression else "sensor_msgs/msg/Image"
     suffix = "/compressed" if compression else ""
-    cameras = [("left", LEFT)] + ([("right", RIGHT)] if stereo else [])
+    cameras = [("left", left_topic)] + ([("right", RIGHT)] if stereo else [])
+    right_delays = right_delays or {}
 
     def header(stamp: float, frame_id: str):
         sec = int(math.floor(stamp))
@@ -58,7 +62,7 @@ def write_bag(path: Path, frames, *, fmt: str = "mcap", stereo: bool = True, com
                                                         data=np.frombuffer(data.tobytes(), np.uint8))
         pixels = {"mono8": image, "bgr8": cv2.cvtColor(image, cv2.COLOR_GRAY2BGR),
                   "rgb8": cv2.cvtColor(image, cv2.COLOR_GRAY2RGB),
-                  "mono16": image.astype("<u2") * 257}[encoding] if image.ndim == 2 else image
+                  "mono16": image.astype("<u2") * 257}.get(encoding, image) if image.ndim == 2 else image
         data = np.frombuffer(np.ascontiguousarray(pixels).tobytes(), np.uint8)
         height, width = image.shape[:2]
         return T["sensor_msgs/msg/Image"](header=header(stamp, frame_id), height=height, width=width, encoding=encoding,
@@ -94,12 +98,13 @@ def write_bag(path: Path, frames, *, fmt: str = "mcap", stereo: bool = True, com
         images = {side: connection(topic + suffix, image_type) for side, topic in cameras}
         infos = {side: connection(topic.rsplit("/", 1)[0] + "/camera_info", "sensor_msgs/msg/CameraInfo")
                  for side, topic in cameras} if camera_info else {}
-        odom = connection(ODOM, "nav_msgs/msg/Odometry") if odometry else None
-        for frame in frames:
+        odom = connection(odom_topic, "nav_msgs/msg/Odometry") if odometry else None
+        for index, frame in enumerate(frames):
             stamp_ns = int(round(frame.stamp * 1e9))
             for side, _ in cameras:
                 image = frame.left if side == "left" else frame.right
-                writer.write(images[side], stamp_ns, serialize(image_message(image, frame.stamp, f"camera_{side}"), image_type))
+                stamp = frame.stamp + (right_delays.get(index, 0.0) if side == "right" else 0.0)
+                writer.write(images[side], stamp_ns, serialize(image_message(image, stamp, f"camera_{side}"), image_type))
                 if side in infos:
                     baseline = frame.camera.baseline if side == "right" else 0.0
                     writer.write(infos[side], stamp_ns, serialize(info_message(frame.camera, frame.stamp, f"camera_{side}",
