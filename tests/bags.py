@@ -119,3 +119,29 @@ def write_bag(path: Path, frames, *, fmt: str = "mcap", stereo: bool = True, com
 
 def image_topic(stereo: bool = False, compression: str | None = None, side: str = "left") -> str:
     return (RIGHT if side == "right" else LEFT) + ("/compressed" if compression else "")
+
+
+def main() -> None:
+    """`python -m tests.bags --source synthetic:0 --preset synthetic --out demo.bag`: a bag of any
+    gridslam source, as the tests write them (for the figures of docs/ecosystem.md)."""
+    import argparse
+
+    from services.source import open_source
+
+    parser = argparse.ArgumentParser(description=main.__doc__.splitlines()[0])
+    parser.add_argument("--source", required=True)
+    parser.add_argument("--preset")
+    parser.add_argument("--n-frames", type=int)
+    parser.add_argument("--out", type=Path, required=True, help="a .bag file (ros1) or a ROS 2 bag folder")
+    parser.add_argument("--format", choices=FORMATS, default="mcap")
+    parser.add_argument("--compression", choices=["png", "jpeg"])
+    parser.add_argument("--mono", action="store_true")
+    args = parser.parse_args()
+    with open_source(args.source, preset=args.preset, stop=args.n_frames, mono=args.mono) as source:
+        write_bag(args.out, source, fmt=args.format, stereo=not args.mono, compression=args.compression)
+    print(f"wrote {args.out}: topics {image_topic(compression=args.compression)}"
+          + ("" if args.mono else f", {image_topic(compression=args.compression, side='right')}") + f", {ODOM}")
+
+
+if __name__ == "__main__":
+    main()
