@@ -129,8 +129,7 @@ def _messages(ros: RosMessages, content: RunContent) -> Iterator[tuple[int, str,
         for stamp, topic, data in items:
             yield stamp, next(tie), topic, data
 
-    streams = [stream(_poses(ros, stage, trajectory)) for stage, trajectory in content.trajectories.items()]
-    streams.append(stream(_images(ros, content)))
+    streams = [stream(_poses(ros, content.trajectories)), stream(_images(ros, content))]
     streams.append(stream((stamp_ns(stamp), *ros.activity(stamp_ns(stamp), pixels)) for stamp, pixels in content.lattices))
     streams.append(stream(_markers(ros, content.map_updates)))
     streams.append(stream((stamp_ns(stamp), *ros.closure(stamp_ns(stamp), fields)) for stamp, fields in content.closures))
@@ -140,10 +139,14 @@ def _messages(ros: RosMessages, content: RunContent) -> Iterator[tuple[int, str,
         yield stamp, topic, data
 
 
-def _poses(ros: RosMessages, stage: str, trajectory: Trajectory):
-    for stamp, position, orientation in zip(trajectory.stamps, trajectory.positions, trajectory.quaternions):
-        nanoseconds = stamp_ns(float(stamp))
-        for topic, data in ros.pose(stage, nanoseconds, position, orientation):
+def _poses(ros: RosMessages, trajectories: dict[str, Trajectory]):
+    """Every stage's Odometry at each stamp, and one /tf message per stamp for all of them."""
+    at: dict[int, list] = {}
+    for stage, trajectory in trajectories.items():
+        for stamp, position, orientation in zip(trajectory.stamps, trajectory.positions, trajectory.quaternions):
+            at.setdefault(stamp_ns(float(stamp)), []).append((stage, position, orientation))
+    for nanoseconds in sorted(at):
+        for topic, data in ros.poses(nanoseconds, at[nanoseconds]):
             yield nanoseconds, topic, data
 
 

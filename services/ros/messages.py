@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -138,6 +139,7 @@ class RosMessages:
     def __init__(self):
         self.store = typestore()
         self.types = self.store.types
+        self._camera_info: tuple[tuple, bytes] | None = None   # (intrinsics, CameraInfo bytes stamped 0)
 
     def msgdef(self, msgtype: str) -> str:
         """The ROS 2 `.msg` definition text (with its dependencies) of `msgtype`, as bags embed it."""
@@ -160,24 +162,30 @@ class RosMessages:
         return bytes(self.store.serialize_cdr(message, msgtype))
 
     # ------------------------------------------------------------------- messages
-    def pose(self, stage: str, stamp: int, position, orientation) -> list[tuple[str, bytes]]:
-        """A stage's pose (position x, y, z; orientation quaternion x, y, z, w) as its Odometry
-        and the /tf transform from `map` to its body frame."""
-        topic, body = STAGES[stage]
+    def poses(self, stamp: int, poses) -> list[tuple[str, bytes]]:
+        """Stages' poses at one stamp, `[(stage, position (x, y, z), orientation (x, y, z, w))]`:
+        each stage's Odometry, and one /tf message with the transform from `map` to each body frame."""
         T = self.types
-        point = T["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2]))
-        rotation = self._quaternion(*orientation)
-        odometry = T[ODOMETRY](
-            header=self._header(stamp, MAP_FRAME), child_frame_id=body,
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](position=point, orientation=rotation),
-                                                           covariance=np.zeros(36)),
-            twist=T["geometry_msgs/msg/TwistWithCovariance"](
-                twist=T["geometry_msgs/msg/Twist"](linear=self._vector(), angular=self._vector()), covariance=np.zeros(36)))
-        transform = self._transform(stamp, MAP_FRAME, body, position, orientation)
-        return [(topic, self._serialize(odometry, ODOMETRY)), ("/tf", self._serialize(T[TF](transforms=[transform]), TF))]
+        messages, transforms = [], []
+        for stage, position, orientation in poses:
+            topic, body = STAGES[stage]
+            point = T["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2]))
+            rotation = self._quaternion(*orientation)
+            odometry = T[ODOMETRY](
+                header=self._header(stamp, MAP_FRAME), child_frame_id=body,
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=T["geometry_msgs/msg/Pose"](position=point, orientation=rotation), covariance=np.zeros(36)),
+                twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                    twist=T["geometry_msgs/msg/Twist"](linear=self._vector(), angular=self._vector()), covariance=np.zeros(36)))
+            messages.append((topic, self._serialize(odometry, ODOMETRY)))
+            transforms.append(self._transform(stamp, MAP_FRAME, body, position, orientation))
+        if transforms:
+            messages.append(("/tf", self._serialize(T[TF](transforms=transforms), TF)))
+        return messages
 
     def planar_pose(self, stage: str, stamp: int, x: float, y: float, heading: float) -> list[tuple[str, bytes]]:
-        return self.pose(stage, stamp, (x, y, 0.0), (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2)))
+        """One stage's planar pose (heading counter-clockwise about z): its Odometry and /tf."""
+        return self.poses(stamp, [(stage, (x, y, 0.0), (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2)))])
 
     def _transform(self, stamp: int, parent: str, child: str, translation, rotation):
         T = self.types
@@ -196,14 +204,24 @@ class RosMessages:
         return CAMERA_TOPIC, self._serialize(message, COMPRESSED_IMAGE)
 
     def camera_info(self, stamp: int, fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> tuple[str, bytes]:
-        """A rectified pinhole camera: K and P from the intrinsics, no distortion."""
+        """A rectified pinhole camera: K and P from the intrinsics, no distortion. Serialised once
+        per camera and restamped: the header's stamp is the first field after CDR's 4-byte
+        encapsulation header (int32 sec, uint32 nanosec, little-endian)."""
+        key = (fx, fy, cx, cy, width, height)
+        if self._camera_info is None or self._camera_info[0] != key:
+            self._camera_info = (key, self._camera_info_message(fx, fy, cx, cy, width, height))
+        data = bytearray(self._camera_info[1])
+        struct.pack_into("<iI", data, 4, stamp // 1_000_000_000, stamp % 1_000_000_000)
+        return CAMERA_INFO_TOPIC, bytes(data)
+
+    def _camera_info_message(self, fx, fy, cx, cy, width, height) -> bytes:
         T = self.types
         message = T[CAMERA_INFO](
-            header=self._header(stamp, CAMERA_FRAME), height=int(height), width=int(width), distortion_model="plumb_bob",
+            header=self._header(0, CAMERA_FRAME), height=int(height), width=int(width), distortion_model="plumb_bob",
             d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=float), r=np.eye(3).reshape(9),
             p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=float), binning_x=0, binning_y=0,
             roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
-        return CAMERA_INFO_TOPIC, self._serialize(message, CAMERA_INFO)
+        return self._serialize(message, CAMERA_INFO)
 
     def activity(self, stamp: int, pixels: np.ndarray) -> tuple[str, bytes]:
         """The grid-cell activity image, mono8."""

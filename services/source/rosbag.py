@@ -268,19 +268,19 @@ class RosbagSource(IndexedSource):
                 raise SourceError(f"{self._path}: choose the camera with --image-topic (image topics: "
                                   f"{', '.join(image_topics) or 'none'})")
             image_topic = image_topics[0]
-        self.topics = {"image": self._topic(image_topic, IMAGE_TYPES, image_topics)}
+        self.topics = {"image": self._topic(image_topic, IMAGE_TYPES, image_topics, "image")}
         if right_topic:
-            self.topics["right"] = self._topic(right_topic, IMAGE_TYPES, image_topics)
+            self.topics["right"] = self._topic(right_topic, IMAGE_TYPES, image_topics, "image")
         infos = sorted(name for name, info in topics.items() if info.msgtype == CAMERA_INFO_TYPE)
         if info_topic:
-            self.topics["camera_info"] = self._topic(info_topic, (CAMERA_INFO_TYPE,), infos)
+            self.topics["camera_info"] = self._topic(info_topic, (CAMERA_INFO_TYPE,), infos, "CameraInfo")
         elif _sibling_info(image_topic) in infos:
             self.topics["camera_info"] = _sibling_info(image_topic)
         if right_topic and _sibling_info(right_topic) in infos:
             self.topics["right_camera_info"] = _sibling_info(right_topic)
         if odom_topic:
             odometries = sorted(name for name, info in topics.items() if info.msgtype == ODOMETRY_TYPE)
-            self.topics["odom"] = self._topic(odom_topic, (ODOMETRY_TYPE,), odometries)
+            self.topics["odom"] = self._topic(odom_topic, (ODOMETRY_TYPE,), odometries, "Odometry")
         self._msgtypes = {role: topics[name].msgtype for role, name in self.topics.items()}
         self._connections = {role: [c for c in self._reader.connections if c.topic == name]
                              for role, name in self.topics.items()}
@@ -314,10 +314,10 @@ class RosbagSource(IndexedSource):
         self._ground_truth, self._odometry = self._poses(index.get("odom"), selected, origin)
         super().__init__(str(self._path), seqs, camera, start, stop, step)
 
-    def _topic(self, name: str, types: tuple[str, ...], candidates: list[str]) -> str:
+    def _topic(self, name: str, types: tuple[str, ...], candidates: list[str], kind: str) -> str:
         info = self._reader.topics.get(name)
         if info is None:
-            raise SourceError(f"{self._path}: no topic {name} (topics of that kind: {', '.join(candidates) or 'none'})")
+            raise SourceError(f"{self._path}: no topic {name} ({kind} topics: {', '.join(candidates) or 'none'})")
         if info.msgtype not in types:
             raise SourceError(f"{self._path}: topic {name} is {info.msgtype}, expected {' or '.join(types)}")
         return name
