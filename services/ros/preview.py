@@ -68,7 +68,7 @@ def preview(path: Path, out: Path, at: float | None = None) -> Path | None:
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=2, fontsize=7, frameon=False)
+    ax.legend(loc="best", fontsize=7)
     ax.set_title(f"{path.name}: Odometry of every stage and /gridslam/map/markers at {(moment - first) / 1e9:.1f} s", fontsize=9)
     camera = nearest(messages.get(CAMERA_TOPIC, []), moment)
     if camera is not None:

@@ -106,7 +106,8 @@ def damage(path: Path, error: BaseException) -> SourceError:
             stream.seek(max(0, size - 8))
             if stream.read(8) != MCAP_MAGIC:
                 where = f"the file ends at byte {size} without MCAP's closing magic: truncated"
-    return SourceError(f"{file}: {where or f'damaged ({_describe(error)}; the file is {size} bytes)'}")
+    size_note = f"; the file is {size} bytes" if file.is_file() else ""
+    return SourceError(f"{file}: {where or f'not a readable ROS bag ({_describe(error)}{size_note})'}")
 
 
 def _ros1_index_position(file: Path) -> int | None:
@@ -247,10 +248,11 @@ class RosbagSource(IndexedSource):
         if not self._path.exists():
             raise SourceError(f"{self._path}: ROS bag not found")
         self._grey = grey
-        self._reader = AnyReader([self._path])
+        self._reader = None
         try:
+            self._reader = AnyReader([self._path])
             self._reader.open()
-        except (AnyReaderError, *_read_errors(), OSError) as error:
+        except (AnyReaderError, *_read_errors(), OSError) as error:   # a folder without metadata.yaml is an OSError
             raise damage(self._path, error) from None
         try:
             self._open(image_topic, None if mono else right_image_topic, camera_info_topic, odom_topic,

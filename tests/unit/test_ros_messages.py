@@ -139,3 +139,31 @@ def test_map_state_counts_a_change_only_when_there_is_one():
     assert not state.apply([(1, 1.0, 0.0)], [(0, 1, ODOMETRIC)])
     assert state.apply([(1, 1.0, 0.1)], [])
     assert state.apply([], [(1, 0, CLOSURE_REFUSED)]) and state.links[(1, 0)] == CLOSURE_REFUSED
+
+
+def test_a_run_without_the_extra_writes_no_mcap_and_says_so(monkeypatch, tmp_path, caplog):
+    from types import SimpleNamespace
+
+    from services.pipeline.recorder import Recording
+    from services.ros import mcap_export
+    from services.ros.messages import RosUnavailable
+
+    def unavailable(*args, **kwargs):
+        raise RosUnavailable("ROS messages need the optional extra 'ros': pip install 'gridslam[ros]'")
+
+    monkeypatch.setattr(mcap_export, "write_run_mcap", unavailable)
+    config = SimpleNamespace(source="synthetic:0", robot="robot0", preset=None)
+    assert mcap_export.write_after_run(tmp_path, Recording(), {}, config) is None
+    assert "pip install 'gridslam[ros]'; no run.mcap written" in caplog.text
+    assert not (tmp_path / "run.mcap").exists()
+
+
+def test_the_foxglove_server_binds_loopback_unless_allowed():
+    from pydantic import ValidationError
+
+    from services.ros.foxglove import FoxgloveConfig
+
+    assert FoxgloveConfig().host == "127.0.0.1" and FoxgloveConfig().port == 8765
+    with pytest.raises(ValidationError, match="needs --allow-remote"):
+        FoxgloveConfig(host="0.0.0.0")
+    assert FoxgloveConfig(host="0.0.0.0", allow_remote=True).host == "0.0.0.0"
