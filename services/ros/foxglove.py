@@ -28,7 +28,7 @@ from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.errors import ConfigError
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.ros.messages import TOPICS, MapState, RosMessages, camera_jpeg, link_kind
+from services.ros.messages import TOPICS, MapState, RosMessages, camera_jpeg, link_kind, typestore
 from services.viewer.config import is_loopback
 from services.viewer.state import planar_from_camera
 
@@ -39,7 +39,7 @@ INBOX_SIZE = 4096   # as the viewer's: pose messages are small, newest-only topi
 
 def check_available() -> None:
     """ConfigError (one line) when the extras the server needs are missing."""
-    RosMessages()
+    typestore()
     try:
         import foxglove  # noqa: F401
     except ImportError:

@@ -167,9 +167,8 @@ def _markers(ros: RosMessages, updates: Iterable[tuple[float, list, list]]):
         if pending is not None and (last_written is None or stamp - last_written >= MARKER_PERIOD_S):
             yield (stamp_ns(stamp), *ros.markers(stamp_ns(stamp), state))
             last_written, pending = stamp, None
-    if pending is not None or (last_written is None and state.experiences):
-        final = pending if pending is not None else last_written
-        yield (stamp_ns(final), *ros.markers(stamp_ns(final), state))
+    if pending is not None:
+        yield (stamp_ns(pending), *ros.markers(stamp_ns(pending), state))
 
 
 # --------------------------------------------------------------------------- from a results folder

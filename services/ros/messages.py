@@ -71,7 +71,7 @@ TOPICS: dict[str, str] = {
 # REP 103's camera "_optical" rotation, as a quaternion (x, y, z, w).
 OPTICAL_ROTATION = (-0.5, 0.5, -0.5, 0.5)
 
-# Camera images are recorded as JPEG at most this wide (a KITTI frame: 640×194, about 25 kB).
+# Camera images are recorded as JPEG at most this wide (a KITTI frame becomes 640×194).
 CAMERA_MAX_WIDTH = 640
 CAMERA_JPEG_QUALITY = 85
 # Link kinds of the experience map, as the viewer draws them.

@@ -29,15 +29,8 @@ from services.source.frames import Camera, FrameSource, SourceError
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag")
-# The topics of a ROS bag (rosbag.RosbagSource), preset keys and flags of the same names.
-TOPIC_SETTINGS = ("image_topic", "right_image_topic", "camera_info_topic", "odom_topic")
-# Source settings a preset may hold besides the calibration, with their types.
-SETTINGS: dict[str, type] = {"fps": float, "grey": bool, **dict.fromkeys(TOPIC_SETTINGS, str),
-                             "stereo_tolerance": float}
-
-
-# Flags (and TOML keys) of the ROS bag settings, shared by `gridslam run`, `odometry` and the
-# source service.
+# The settings of a ROS bag (rosbag.RosbagSource): preset keys, config keys and flags of the same
+# names, shared by `gridslam run`, `odometry` and the source service.
 BAG_FLAG_HELP = {
     "image_topic": "ROS bag: image topic, sensor_msgs/Image or CompressedImage (default: the bag's only one)",
     "right_image_topic": "ROS bag: right image topic of a stereo pair, matched by stamp",
@@ -45,6 +38,9 @@ BAG_FLAG_HELP = {
     "odom_topic": "ROS bag: nav_msgs/Odometry topic (passthrough estimator; ground truth where the run has none)",
     "stereo_tolerance": "ROS bag: seconds between the stamps of a stereo pair, at most (default 0.005)",
 }
+# Source settings a preset may hold besides the calibration, with their types.
+SETTINGS: dict[str, type] = {"fps": float, "grey": bool,
+                             **{key: float if key == "stereo_tolerance" else str for key in BAG_FLAG_HELP}}
 
 
 def add_bag_arguments(parser) -> None:
@@ -139,13 +135,13 @@ def open_source(
 
     ``mono`` drops the right image of stereo sources (less to read for monocular estimators).
     ``origin``: the frame whose pose is the ground truth's origin (default: the first selected).
-    ``topics``: a ROS bag's topics (TOPIC_SETTINGS) and ``stereo_tolerance``, over the preset's;
-    None values are left to the preset.
+    ``topics``: a ROS bag's settings (BAG_FLAG_HELP's keys), over the preset's; None values are
+    left to the preset.
     Raises SourceError (bad spec or data) or ConfigError (bad preset) with one line naming the file.
     """
     kind, target = parse_spec(spec)
     preset_camera, settings = load_preset(preset) if preset is not None else (None, {})
-    bag = {key: settings.pop(key) for key in (*TOPIC_SETTINGS, "stereo_tolerance") if key in settings}
+    bag = {key: settings.pop(key) for key in BAG_FLAG_HELP if key in settings}
     bag.update({key: value for key, value in (topics or {}).items() if value is not None})
     if isinstance(calibration, Camera):
         camera = calibration
@@ -174,7 +170,7 @@ def open_source(
     if kind == "rosbag":
         from services.source.rosbag import RosbagSource
 
-        unknown = sorted(set(bag) - {*TOPIC_SETTINGS, "stereo_tolerance"})
+        unknown = sorted(set(bag) - set(BAG_FLAG_HELP))
         if unknown:
             raise ConfigError(f"unknown ROS bag setting {unknown[0]!r}")
         return RosbagSource(target, camera=camera, grey=grey, mono=mono, origin=origin, **bag, **selection)

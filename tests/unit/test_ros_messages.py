@@ -17,7 +17,7 @@ from mcap_ros2.decoder import DecoderFactory   # noqa: E402
 
 from services.evaluation.trajectory import Trajectory   # noqa: E402
 from services.ros.mcap_export import MARKER_PERIOD_S, RunContent, write_run_mcap   # noqa: E402
-from services.ros.messages import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC, STAGES, MapState   # noqa: E402
+from services.ros.messages import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC, STAGES, TOPICS, MapState   # noqa: E402
 
 FRAMES = 30
 FPS = 10.0
@@ -167,3 +167,25 @@ def test_the_foxglove_server_binds_loopback_unless_allowed():
     with pytest.raises(ValidationError, match="needs --allow-remote"):
         FoxgloveConfig(host="0.0.0.0")
     assert FoxgloveConfig(host="0.0.0.0", allow_remote=True).host == "0.0.0.0"
+
+
+def test_the_foxglove_server_says_in_one_line_that_its_port_is_taken():
+    pytest.importorskip("foxglove", reason="the optional extra 'foxglove' is not installed")
+    import socket
+
+    from services.common.errors import ConfigError
+    from services.common.runtime import RuntimeConfig
+    from services.ros.foxglove import FoxgloveConfig, FoxgloveService
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(ConfigError, match=rf"foxglove: cannot serve on 127.0.0.1:{port}: .*in use"):
+            FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=port))
+    service = FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=0))   # any free port
+    try:
+        assert service.url.startswith("ws://127.0.0.1:") and service.server.port > 0
+        assert set(service.channels) == set(TOPICS)
+    finally:
+        service.server.stop()
