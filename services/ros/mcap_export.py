@@ -25,7 +25,7 @@ import numpy as np
 from services.common.errors import DataError, GridslamError
 from services.evaluation.trajectory import Trajectory, read_tum
 from services.ros.messages import (
-    STAGES, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
+    CAMERA_MAX_WIDTH, STAGES, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
 )
 
 log = logging.getLogger(__name__)
@@ -249,6 +249,9 @@ def _source_images(config: dict):
         log.warning("camera images left out: config.json is not a run's configuration (%s)",
                     str(error).splitlines()[0])
         return (), None
+    if run.source.startswith("camera:"):
+        log.warning("camera images left out: the run's source %s is a live camera", run.source)
+        return (), None
     stop = run.start + run.n_frames * run.step if run.n_frames else None
     try:
         frames = open_source(run.source, start=run.start, stop=stop, step=run.step, preset=run.preset,
@@ -256,12 +259,8 @@ def _source_images(config: dict):
     except GridslamError as error:   # a moved dataset: the export goes on without images
         log.warning("camera images left out: the run's source %s cannot be read again (%s)", run.source, error)
         return (), None
-    if getattr(frames, "live", False):
-        frames.close()
-        log.warning("camera images left out: the run's source %s is a live camera", run.source)
-        return (), None
     first = frames[0]
-    scale = camera_jpeg(first.left, _encoding(first.left))[1]
+    scale = min(1.0, CAMERA_MAX_WIDTH / first.left.shape[1])   # as camera_jpeg scales the image
     camera = frames.camera
     model = None if camera is None else (camera.fx * scale, camera.fy * scale, camera.cx * scale, camera.cy * scale,
                                          round(first.left.shape[1] * scale), round(first.left.shape[0] * scale))
