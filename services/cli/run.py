@@ -9,12 +9,12 @@ from pathlib import Path
 from services.common.config import load_config
 from services.common.runtime import DEFAULT_ROUTER
 from services.expmap.service import add_map_arguments
-from services.source.spec import add_world_arguments
+from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings
 
 
 def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--source", required=source_required,
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
     parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
@@ -36,6 +36,11 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
     add_world_arguments(parser)
+    parser.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
+                        help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (default 8765; extra `foxglove`)")
+    parser.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
+                        help="do not write run.mcap (nor keep the camera images for it)")
+    add_bag_arguments(parser)
 
 
 def register(subparsers) -> None:
@@ -83,7 +88,8 @@ def execute(args, **defaults) -> int:
              "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
              "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view,
              "closure": args.closure, "map_optimizer": args.map_optimizer,
-             "world": parse_world_flags(args.world, args.laps) or None}
+             "world": parse_world_flags(args.world, args.laps) or None,
+             "mcap": args.mcap, "foxglove": args.foxglove, **bag_settings(args)}
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
     progress = Progress()
     try:
