@@ -62,6 +62,13 @@ class GridPose(Message):
     step_length: float = Field(ge=0.0, description="Distance credited to the last frame, metres (paper eq. 5).")
     saturated: bool = Field(False, description="True when the lattice shift reached the decoder's search limit.")
     integrator: str = Field(description="Integrator that produced it: grid (the attractor network) or deadreckoning.")
+    decoder: str | None = Field(
+        None, description="Lattice flow decoder (paper, fft, subpixel or calibrated); absent for dead reckoning.")
+    step_source: Literal["odometry", "lattice"] = Field(
+        "odometry", description="Where the step length came from: the ego-motion (paper eq. 5) or the calibrated lattice flow.")
+    heading_model: Literal["sum", "ring"] = Field(
+        "sum", description="Heading model: summed yaw (the paper's) or a head-direction ring attractor.")
+    modules: int = Field(1, ge=0, description="Grid modules whose flow was combined (0 for dead reckoning).")
 
 
 class GridActivity(Message):

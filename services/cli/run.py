@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -15,14 +16,18 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
                         help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
+    parser.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
     parser.add_argument("--preset", help="dataset preset: synthetic, nubot, kitti, stlucia")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file for the source")
     parser.add_argument("-c", "--config", type=Path, help="gridslam TOML config file for every service")
     parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
     parser.add_argument("--n-frames", type=int, help="process only this many frames")
     parser.add_argument("--start", type=int, help="first frame index")
-    parser.add_argument("--step", type=int, help="take every step-th frame")
+    parser.add_argument("--step", type=step_value, action="append", metavar="N|odometry|lattice",
+                        help="a number: take every N-th frame; odometry or lattice: where the grid cells' step length "
+                             "comes from (default odometry); may be given twice")
     parser.add_argument("-l", "--listen", help=f"the run's router endpoint (default {DEFAULT_ROUTER})")
     parser.add_argument("-e", "--connect", metavar="ENDPOINT",
                         help="use the router at ENDPOINT instead of starting one (e.g. several robots on one network)")
@@ -31,6 +36,19 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
                         help="skip loop closure and the experience map")
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
+
+
+def step_value(text: str) -> int | str:
+    """`--step`: a frame stride (a positive integer) or the grid cells' step source."""
+    if text in ("odometry", "lattice"):
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, odometry or lattice, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, odometry or lattice, got {text!r}")
+    return value
 
 
 def register(subparsers) -> None:
@@ -73,9 +91,13 @@ def execute(args, **defaults) -> int:
     from services.pipeline.report import summary_rows
     from services.pipeline.runner import RunConfig, run_pipeline
 
+    steps = args.step or []
+    strides = [value for value in steps if isinstance(value, int)]
+    sources = [value for value in steps if isinstance(value, str)]
     flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
+             "step_source": sources[-1] if sources else None, "modules": args.modules, "heading": args.heading,
              "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view}
+             "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view}
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
     progress = Progress()
     try:

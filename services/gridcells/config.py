@@ -14,7 +14,16 @@ class GridCellsConfig(BaseModel):
 
     integrator: Literal["grid", "deadreckoning"] = Field(
         "grid", description="grid: the periodic attractor network; deadreckoning: plain integration of the increments (baseline).")
-    decoder: Literal["paper", "fft", "subpixel"] = Field("subpixel", description="How the lattice flow is read between frames.")
+    decoder: Literal["paper", "fft", "subpixel", "calibrated"] = Field(
+        "subpixel", description="How the lattice flow is read between frames; calibrated: subpixel's shift through the inverse of "
+                                "the flow measured once per parameter set (cached on disk).")
+    step: Literal["odometry", "lattice"] = Field(
+        "odometry", description="Where the step length comes from: the ego-motion (paper eq. 5) or the calibrated lattice flow "
+                                "(needs decoder = calibrated).")
+    modules: int = Field(1, ge=1, le=4, description="Grid modules of different spacings (ratio ~1.4), run batched and combined "
+                                                    "by precision (more than 1 needs decoder = calibrated).")
+    heading: Literal["sum", "ring"] = Field(
+        "sum", description="Heading model: sum (integrated yaw, the paper's) or ring (a head-direction ring attractor).")
     velocity_scale: float | Literal["auto"] = Field(
         "auto", description="Network input units per metre; auto derives it from typical_speed.")
     typical_speed: float = Field(
