@@ -85,20 +85,26 @@ class Progress:
             self.stream.write("\n")
 
 
+def run_flags(args) -> dict:
+    """The RunConfig fields the flags set (None: not given). `--step` given a number is the
+    frame stride, given odometry or lattice the grid cells' step source."""
+    steps = args.step or []
+    strides = [value for value in steps if isinstance(value, int)]
+    sources = [value for value in steps if isinstance(value, str)]
+    return {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
+            "step_source": sources[-1] if sources else None, "modules": args.modules, "heading": args.heading,
+            "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames,
+            "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
+            "robot": args.robot, "mapping": args.mapping, "view": args.view}
+
+
 def execute(args, **defaults) -> int:
     """Build the RunConfig from defaults < config file [run] < flags, run it, print the summary."""
     from services.evaluation.results import format_table
     from services.pipeline.report import summary_rows
     from services.pipeline.runner import RunConfig, run_pipeline
 
-    steps = args.step or []
-    strides = [value for value in steps if isinstance(value, int)]
-    sources = [value for value in steps if isinstance(value, str)]
-    flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
-             "step_source": sources[-1] if sources else None, "modules": args.modules, "heading": args.heading,
-             "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view}
-    config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
+    config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args))
     progress = Progress()
     try:
         result = run_pipeline(config, args.out, progress=progress)

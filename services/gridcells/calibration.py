@@ -207,6 +207,7 @@ def measure_flow(params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(
     gain = np.zeros((half, len(speeds)), dtype=complex)
     scatter = np.zeros((half, len(speeds)))
     nominal = 0.383 * params.alpha * params.steps_per_frame  # neurons per frame per network unit (about)
+    measured = len(speeds)
     for k, speed in enumerate(speeds):
         frames = int(np.clip(math.ceil(grid.travel / (nominal * speed)), grid.min_frames, grid.max_frames))
         previous = None
@@ -218,9 +219,18 @@ def measure_flow(params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(
                     dx, dy = decode_subpixel(previous[j], fields[j], search)
                     flows[frame - grid.settle_frames, j] = complex(dx, -dy)
             previous = fields
+        if np.max(np.abs(np.r_[flows.real.ravel(), flows.imag.ravel()])) >= search - 0.5:
+            # The flow reached the edge of the search window: this speed and faster ones are
+            # beyond what the module can read; the table ends at the previous speed.
+            measured = k
+            break
         gain[:, k] = flows.mean(axis=0) / (speed * unit)
         scatter[:, k] = np.abs(flows - flows.mean(axis=0)).std(axis=0) if frames > 1 else 0.0
         log.debug("calibration λ=%g: drive %.3g, %d frames, mean |gain| %.4g", params.lam, speed * params.alpha, frames, np.abs(gain[:, k]).mean())
+    if measured < 2:
+        raise GridCellError(f"calibration of λ={params.lam}: the flow leaves the ±{search} search already at drive "
+                            f"{grid.drives[measured]}; lower the drives")
+    speeds, gain, scatter = speeds[:measured], gain[:, :measured], scatter[:, :measured]
     gain, scatter = np.vstack([gain, gain]), np.vstack([scatter, scatter])
     table = FlowTable(params, search, angles, speeds, gain, scatter, 0.0, 0.0, warm_state.astype(np.float32), warm_field.astype(np.float32))
     lag, noise = _check_sequence(table, grid.check_frames)

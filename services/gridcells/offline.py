@@ -20,6 +20,7 @@ from services.evaluation import metrics as evaluation
 from services.evaluation.plots import plot_heatmaps, plot_series, plot_trajectories
 from services.evaluation.results import results_dir, write_config, write_json
 from services.evaluation.trajectory import Trajectory, wrap_angle, write_tum
+from services.gridcells.gridcode import GridCode
 from services.gridcells.integrator import DECODER_NAMES, DeadReckoning, GridCellIntegrator, auto_velocity_scale
 from services.gridcells.motion_io import MotionInput, add_noise, load_motion
 from services.gridcells.network import GridNetwork, NetworkParams
@@ -50,6 +51,7 @@ class IntegrationRun:
     shifts: np.ndarray
     saturations: int
     seconds: float
+    gridcode: Trajectory | None = None  # the position read from the modules' phases (calibrated decoder)
 
     def shift_stats(self) -> dict:
         """Median and 95th percentile of the decoded lattice shift per frame (neurons) over
@@ -95,6 +97,8 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
         increments = increments @ np.array([[c, s], [-s, c]])
         heading_input = None if heading_input is None else heading_input + rotation
     every = max(1, int(n * PROGRESS_EVERY))
+    code = GridCode(integrator.tables, integrator.velocity_scale) if getattr(integrator, "tables", ()) else None
+    coded = np.zeros(n, dtype=complex)
     started = time.perf_counter()
     for k in range(n):
         if body:
@@ -104,6 +108,8 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
             step = integrator.step_world(increments[k, 0], increments[k, 1], heading)
         poses[k] = step.pose.x, step.pose.y, step.pose.heading
         shifts[k] = step.shift
+        if code is not None:  # the phases, searched within one module spacing of the integrated position
+            coded[k] = code.decode(integrator.network.fields, complex(step.pose.x, step.pose.y))
         if (k + 1) % every == 0 and name != "deadreckoning":
             log.info("%s: frame %d of %d (%.1f ms per frame)", name, k + 1, n, 1000 * (time.perf_counter() - started) / (k + 1))
     seconds = time.perf_counter() - started
@@ -114,7 +120,11 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
     x = x0 + c * poses[:, 0] - s * poses[:, 1]
     y = y0 + s * poses[:, 0] + c * poses[:, 1]
     trajectory = Trajectory.from_planar(motion.stamps, x, y, wrap_angle(poses[:, 2] - rotation))
-    return IntegrationRun(name, trajectory, shifts, int(integrator.saturations), seconds)
+    gridcode = None
+    if code is not None:
+        gx, gy = x0 + c * coded.real - s * coded.imag, y0 + s * coded.real + c * coded.imag
+        gridcode = Trajectory.from_planar(motion.stamps, gx, gy, wrap_angle(poses[:, 2] - rotation))
+    return IntegrationRun(name, trajectory, shifts, int(integrator.saturations), seconds, gridcode)
 
 
 @dataclass(frozen=True)
@@ -201,6 +211,15 @@ def direction_errors(est: Trajectory, deadreckoning: Trajectory) -> dict:
     return result
 
 
+def gridcode_metrics(run: IntegrationRun, truth: Trajectory | None, deadreckoning: Trajectory) -> dict:
+    """The grid-code position (from the modules' phases) scored like the integrated one, and
+    how far it is from the integrated position (mean and largest, m)."""
+    apart = np.linalg.norm(run.gridcode.positions - run.trajectory.positions, axis=1)
+    result = {key: value for key, value in trajectory_metrics(run.gridcode, truth, deadreckoning).items()
+              if not key.startswith(("direction", "step_ratio", "heading"))}
+    return result | {"mean_difference_from_integrated_m": float(apart.mean()), "max_difference_from_integrated_m": float(apart.max())}
+
+
 def error_over_time(est: Trajectory, reference: Trajectory) -> np.ndarray:
     """Position error of every pose (m), no alignment: the drift curve of the paper's Fig. 3."""
     return np.linalg.norm(est.positions - reference.positions, axis=1)
@@ -283,6 +302,8 @@ def integrate(
         "grid": trajectory_metrics(grid.trajectory, truth, deadreckoning.trajectory) | grid.shift_stats(),
         "deadreckoning": trajectory_metrics(deadreckoning.trajectory, truth),
     }
+    if grid.gridcode is not None:
+        metrics["gridcode"] = gridcode_metrics(grid, truth, deadreckoning.trajectory)
     if truth is not None:
         metrics["groundtruth"] = {"path_length_m": truth.path_length(), "end_to_start_gap_m": evaluation.end_to_start_gap(truth)}
     result = IntegrationResult(motion, decoder, scale, grid, deadreckoning, metrics)
@@ -305,6 +326,8 @@ def write_integration(folder: Path, result: IntegrationResult, config: dict) -> 
         "trajectory": write_tum(folder / "trajectory.tum", result.grid.trajectory),
         "deadreckoning": write_tum(folder / "deadreckoning.tum", result.deadreckoning.trajectory),
     }
+    if result.grid.gridcode is not None:
+        files["gridcode"] = write_tum(folder / "gridcode.tum", result.grid.gridcode)
     shown = {}
     truth = result.groundtruth
     if truth is not None:
@@ -358,6 +381,16 @@ def integration_table(result: IntegrationResult) -> list[tuple[str, object, str]
         ("grid mean difference from DR", grid["mean_difference_from_dr_m"], "m"),
     ]
     rows += _direction_rows(grid, "grid")
+    if "gridcode" in m:
+        rows += _gridcode_rows(m["gridcode"], "grid code")
+    return rows
+
+
+def _gridcode_rows(metrics: dict, name: str) -> list[tuple[str, object, str]]:
+    rows = [(f"{name}: mean distance from the integrated position", metrics["mean_difference_from_integrated_m"], "m")]
+    if "endpoint_error_pct" in metrics:
+        rows += [(f"{name}: endpoint error", metrics["endpoint_error_pct"], "% of path"),
+                 (f"{name}: mean error", metrics["mean_error_pct"], "% of path")]
     return rows
 
 
@@ -472,6 +505,8 @@ def simulate(
         metrics[name] = trajectory_metrics(run.trajectory, truth, deadreckoning.trajectory) | {
             "saturations": run.saturations, "ms_per_frame": 1000.0 * run.seconds / n_frames,
         } | run.shift_stats()
+        if run.gridcode is not None:
+            metrics[f"{name} gridcode"] = gridcode_metrics(run, truth, deadreckoning.trajectory)
     rate_map, score = None, None
     if firing_frames:
         firing_walk = long_walk.head(firing_frames)
@@ -507,6 +542,8 @@ def write_simulation(folder: Path, result: SimulationResult, config: dict) -> di
     }
     for name, run in result.runs.items():
         files[f"trajectory_{name}"] = write_tum(folder / f"trajectory_{name}.tum", run.trajectory)
+        if run.gridcode is not None:
+            files[f"gridcode_{name}"] = write_tum(folder / f"gridcode_{name}.tum", run.gridcode)
     files["metrics"] = write_json(folder / "metrics.json", result.metrics)
     files["config"] = write_config(folder / "config.json", config)
     shown = {"groundtruth": truth} | {f"grid cells ({name})": run.trajectory for name, run in result.runs.items()}
@@ -547,6 +584,8 @@ def simulation_table(result: SimulationResult) -> list[tuple[str, object, str]]:
             (f"{name} saturated frames", m[name]["saturations"], "frames"),
             (f"{name} time per frame", m[name]["ms_per_frame"], "ms"),
         ] + _direction_rows(m[name], name)
+        if f"{name} gridcode" in m:
+            rows += _gridcode_rows(m[f"{name} gridcode"], f"{name} grid code")
     if "firing_map" in m:
         rows += [
             ("firing map frames", m["firing_map"]["frames"], ""),
