@@ -32,11 +32,11 @@ def run(args) -> int:
     for k, params in enumerate(module_params(NetworkParams(n=args.neurons), args.modules)):
         path = flow_table_path(folder, params)
         if path.exists() and not args.force:
-            rows.append((f"module {k} (λ={params.lam:.4g})", "kept", str(path)))
+            rows.append((f"module {k} (α={params.alpha:.4g})", "kept", str(path)))
             continue
         table = measure_flow(params)
         table.save(path)
-        rows += [(f"module {k} (λ={params.lam:.4g})", f"{table.seconds:.1f}", f"s, {path}"),
+        rows += [(f"module {k} (α={params.alpha:.4g})", f"{table.seconds:.1f}", f"s, {path}"),
                  (f"module {k} search / lag / noise", f"±{table.search} / {table.lag:.4f} / {table.noise:.3g}",
                   "neurons / fraction / units per frame")]
     print(format_table(rows))

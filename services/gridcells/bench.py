@@ -150,11 +150,12 @@ ROWS = (
 RATIOS = (("calibrated1", "today"), ("calibrated3", "today"), ("subpixel", "today"))
 
 
-def direction_sweep(directions: int = 24, shift: float = 3.0, settle: int = 12, frames: int = 12) -> list[tuple[float, float, float]]:
+def direction_sweep(directions: int = 24, shift: float = 3.0, settle: int = 12, frames: int = 12) -> list[tuple[float, float, float, float]]:
     """The issue's constant-velocity sweep: the default network from its warm state driven in
     each of ``directions`` directions at ``shift`` neurons per frame (nominal); after ``settle``
     frames, the mean direction error over ``frames`` frames of the raw `subpixel` shift and of
-    the `calibrated` decoder (degrees). All directions run as one batch."""
+    the `calibrated` decoder (degrees), and the calibrated speed over the input's. All
+    directions run as one batch."""
     params = NetworkParams()
     table = flow_table(params)
     angles = 2 * math.pi * np.arange(directions) / directions
@@ -176,7 +177,7 @@ def direction_sweep(directions: int = 24, shift: float = 3.0, settle: int = 12, 
                 calibrated[j] += decoded
         previous = fields
     errors = lambda values: np.degrees(np.angle(values / velocities))  # noqa: E731
-    return list(zip(np.degrees(angles), errors(raw), errors(calibrated)))
+    return list(zip(np.degrees(angles), errors(raw), errors(calibrated), np.abs(calibrated / frames / velocities)))
 
 
 def ring_sweep(rates_deg=(1, 2, 5, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100, 120), frames: int = 50) -> list[tuple[float, float]]:
@@ -197,10 +198,11 @@ def print_sweeps() -> None:
     rows = direction_sweep()
     print("Constant velocity, 3 neurons per frame (nominal), default network from its warm state: mean direction error "
           "over frames 13-24, degrees\n")
-    print("| direction | `subpixel` | `calibrated` |\n|---:|---:|---:|")
-    for angle, raw, calibrated in rows:
-        print(f"| {angle:.0f}° | {raw:+.3f} | {calibrated:+.4f} |")
-    print(f"| largest \\|error\\| | {max(abs(r) for _, r, _ in rows):.3f} | {max(abs(c) for _, _, c in rows):.4f} |\n")
+    print("| direction | `subpixel` | `calibrated` | calibrated speed / input |\n|---:|---:|---:|---:|")
+    for angle, raw, calibrated, ratio in rows:
+        print(f"| {angle:.0f}° | {raw:+.3f} | {calibrated:+.4f} | {ratio:.5f} |")
+    print(f"| largest \\|error\\| | {max(abs(r[1]) for r in rows):.3f} | {max(abs(r[2]) for r in rows):.4f} | "
+          f"{max(abs(r[3] - 1) for r in rows):.5f} |\n")
     ring = ring_sweep()
     print("Head-direction ring: largest heading error over 50 frames of a constant yaw rate from rest\n")
     print("| yaw per frame | largest error |\n|---:|---:|")

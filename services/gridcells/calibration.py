@@ -11,9 +11,10 @@ from one speed to the next) at constant velocities over a grid of directions and
 records the mean decoded flow, as a complex gain c(θ, s) = flow / input (world frame: x + iy;
 the lattice flows toward larger columns for +x and smaller rows for +y). A flow w is decoded
 by inverting it: the input u with c(u)·u = w, by fixed-point iteration on the table
-(bilinear in direction and speed). The table also holds the network's warm state (the
+(linear in direction, cubic in speed). The table also holds the network's warm state (the
 settled lattice after WARM_FRAMES zero-velocity frames on the torus, when it has finished
-re-forming and no longer drifts), the one-frame lag of the flow behind a change of input, and
+re-forming and no longer drifts), the one-frame lag of the flow behind a change of input (along
+and across the direction of travel), and
 the rms error of the decoded velocity on a varying input (the module's precision).
 
 Tables are cached on disk (cache_dir(): $GRIDSLAM_CACHE, else $XDG_CACHE_HOME/gridslam, else
@@ -41,7 +42,7 @@ from services.gridcells.network import GridCellError, NetworkParams, NetworkStac
 log = logging.getLogger(__name__)
 
 # Bump when the measurement changes: old cache files are then ignored.
-CALIBRATION_VERSION = 1
+CALIBRATION_VERSION = 2
 # Zero-velocity frames after the authors' settling: the lattice re-forms into a torus-periodic
 # one and its drift at rest falls from ~0.003 to < 1e-4 neurons per frame (docs/gridcells.md).
 WARM_FRAMES = 200
@@ -91,7 +92,8 @@ class FlowTable:
     """The measured flow of one network. `gain[j, k]` is the complex flow per unit of input
     (neurons per network unit, world frame) at direction angles[j] and speed speeds[k]
     (network units per frame); `scatter[j, k]` the per-frame standard deviation of the decoded
-    flow there (neurons). `lag`: the fraction of a change of input that shows one frame late.
+    flow there (neurons). `lag`: the fraction of a change of input that shows one frame late,
+    (along, across) the direction of travel: a change of speed, a turn.
     `noise`: rms error per frame of the decoded velocity on a varying input, network units.
     `warm_state`, `warm_field`: the network's start (n×n)."""
 
@@ -101,7 +103,7 @@ class FlowTable:
     speeds: np.ndarray
     gain: np.ndarray
     scatter: np.ndarray
-    lag: float
+    lag: tuple[float, float]
     noise: float
     warm_state: np.ndarray
     warm_field: np.ndarray
@@ -111,26 +113,42 @@ class FlowTable:
     def __post_init__(self) -> None:
         angles = np.append(self.angles, self.angles[0] + 2 * math.pi)  # periodic in direction
         gain = np.vstack([self.gain, self.gain[:1]])
-        object.__setattr__(self, "_lookup", (angles, gain, self.speeds))
+        # Slopes in speed for cubic Hermite interpolation (the three-point derivative on the
+        # uneven grid; one-sided at the ends): the gain is curved in speed, and a straight
+        # line between the tabulated speeds misses it by up to 0.03 %.
+        speeds = self.speeds
+        slopes = np.zeros_like(gain)
+        if len(speeds) > 1:
+            h = np.diff(speeds)
+            d = np.diff(gain, axis=1) / h
+            slopes[:, 0], slopes[:, -1] = d[:, 0], d[:, -1]
+            if len(speeds) > 2:
+                slopes[:, 1:-1] = (h[1:] * d[:, :-1] + h[:-1] * d[:, 1:]) / (h[:-1] + h[1:])
+        object.__setattr__(self, "_lookup", (angles, gain, slopes, speeds))
 
     @property
     def max_speed(self) -> float:
         return float(self.speeds[-1])
 
     def gain_at(self, angle: float, speed: float) -> complex:
-        """c(θ, s), bilinear; constant below the slowest and beyond the fastest speed."""
-        angles, gain, speeds = self._lookup
+        """c(θ, s): linear in direction, cubic (Hermite) in speed; constant below the slowest
+        and beyond the fastest tabulated speed."""
+        angles, gain, slopes, speeds = self._lookup
         angle = angle % (2 * math.pi)
         j = min(max(int(np.searchsorted(angles, angle, side="right")) - 1, 0), len(angles) - 2)
         a = (angle - angles[j]) / (angles[j + 1] - angles[j])
-        if speed <= speeds[0]:
-            k, b = 0, 0.0
+        if len(speeds) == 1 or speed <= speeds[0]:
+            values = gain[j, 0], gain[j + 1, 0]
         elif speed >= speeds[-1]:
-            k, b = len(speeds) - 2, 1.0
+            values = gain[j, -1], gain[j + 1, -1]
         else:
             k = int(np.searchsorted(speeds, speed)) - 1
-            b = (speed - speeds[k]) / (speeds[k + 1] - speeds[k])
-        return complex((1 - a) * ((1 - b) * gain[j, k] + b * gain[j, k + 1]) + a * ((1 - b) * gain[j + 1, k] + b * gain[j + 1, k + 1]))
+            h = speeds[k + 1] - speeds[k]
+            t = (speed - speeds[k]) / h
+            basis = (2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2)
+            values = tuple(basis[0] * gain[i, k] + basis[1] * h * slopes[i, k] + basis[2] * gain[i, k + 1] + basis[3] * h * slopes[i, k + 1]
+                           for i in (j, j + 1))
+        return complex((1 - a) * values[0] + a * values[1])
 
     def flow(self, velocity: complex) -> complex:
         """The flow (neurons per frame, world frame) the table predicts for an input velocity."""
@@ -153,7 +171,7 @@ class FlowTable:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(tmp, "wb") as handle:
             np.savez_compressed(handle, params=json.dumps(asdict(self.params)), search=self.search, angles=self.angles, speeds=self.speeds,
-                     gain=self.gain, scatter=self.scatter, lag=self.lag, noise=self.noise, warm_state=self.warm_state,
+                     gain=self.gain, scatter=self.scatter, lag=np.array(self.lag), noise=self.noise, warm_state=self.warm_state,
                      warm_field=self.warm_field, seconds=self.seconds, version=CALIBRATION_VERSION)
         os.replace(tmp, path)
         return path
@@ -164,7 +182,7 @@ class FlowTable:
             if int(data["version"]) != CALIBRATION_VERSION:
                 raise ValueError(f"calibration version {int(data['version'])}, expected {CALIBRATION_VERSION}")
             return cls(NetworkParams(**json.loads(str(data["params"]))), int(data["search"]), data["angles"], data["speeds"],
-                       data["gain"], data["scatter"], float(data["lag"]), float(data["noise"]), data["warm_state"],
+                       data["gain"], data["scatter"], tuple(float(v) for v in data["lag"]), float(data["noise"]), data["warm_state"],
                        data["warm_field"], float(data["seconds"]))
 
 
@@ -232,11 +250,11 @@ def measure_flow(params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(
                             f"{grid.drives[measured]}; lower the drives")
     speeds, gain, scatter = speeds[:measured], gain[:, :measured], scatter[:, :measured]
     gain, scatter = np.vstack([gain, gain]), np.vstack([scatter, scatter])
-    table = FlowTable(params, search, angles, speeds, gain, scatter, 0.0, 0.0, warm_state.astype(np.float32), warm_field.astype(np.float32))
+    table = FlowTable(params, search, angles, speeds, gain, scatter, (0.0, 0.0), 0.0, warm_state.astype(np.float32), warm_field.astype(np.float32))
     lag, noise = _check_sequence(table, grid.check_frames)
     seconds = time.perf_counter() - started
-    log.info("calibrated the lattice flow of λ=%g (n=%d, α=%g) in %.1f s: lag %.3f, noise %.3g units/frame", params.lam, params.n,
-             params.alpha, seconds, lag, noise)
+    log.info("calibrated the lattice flow of λ=%g (n=%d, α=%g) in %.1f s: lag %.3f along, %.3f across, noise %.3g units/frame",
+             params.lam, params.n, params.alpha, seconds, *lag, noise)
     return FlowTable(params, search, angles, speeds, gain, scatter, lag, noise, table.warm_state, table.warm_field, seconds)
 
 
@@ -259,12 +277,13 @@ def check_velocities(frames: int, speed: float, seed: int = 0) -> np.ndarray:
     return velocities
 
 
-def _check_sequence(table: FlowTable, frames: int) -> tuple[float, float]:
+def _check_sequence(table: FlowTable, frames: int) -> tuple[tuple[float, float], float]:
     """Drive the warm network with check_velocities and compare the decoded flow with the
-    table's prediction: the lag c of flow_k ≈ (1 − c)·F(u_k) + c·F(u_{k−1}) (least squares),
-    and the rms error of the velocity decoded with that lag taken out (network units)."""
+    table's prediction: the lags (along, across) of flow_k ≈ F_k + c·(F_{k−1} − F_k), the
+    change split along and across F_k (least squares), and the rms error of the velocity
+    decoded with those lags taken out (network units)."""
     if frames < 3:
-        return 0.0, 0.0
+        return (0.0, 0.0), 0.0
     params = table.params
     network = NetworkStack(params, settle=False)
     network.state = table.warm_state[None]
@@ -279,9 +298,12 @@ def _check_sequence(table: FlowTable, frames: int) -> tuple[float, float]:
         measured[k] = complex(dx, -dy)
         previous = field_
     predicted = np.array([table.flow(v) for v in velocities])
-    change = np.diff(predicted)  # F(u_{k-1}) − F(u_k) = −change
-    residual = measured[1:] - predicted[1:]
-    lag = float(np.real(np.vdot(-change, residual)) / max(np.vdot(change, change).real, 1e-30))
+    moving = np.abs(predicted[1:]) > 0
+    direction = np.where(moving, predicted[1:] / np.where(moving, np.abs(predicted[1:]), 1), 0)
+    change = (predicted[:-1] - predicted[1:]) * np.conj(direction)
+    residual = (measured[1:] - predicted[1:]) * np.conj(direction)
+    lag = tuple(float(np.dot(part(residual), part(change)) / max(np.dot(part(change), part(change)), 1e-30))
+                for part in (np.real, np.imag))
     decoded = LagInverter(table, lag)
     errors = np.array([decoded(w) - v for w, v in zip(measured, velocities)])
     return lag, float(np.sqrt(np.mean(np.abs(errors[1:]) ** 2)))
@@ -289,17 +311,24 @@ def _check_sequence(table: FlowTable, frames: int) -> tuple[float, float]:
 
 class LagInverter:
     """Per-frame decoding with the table: flow → input velocity, with the one-frame lag taken
-    out (flow_k = (1 − c)·F(u_k) + c·F(u_{k−1}), F(u_{k−1}) the previous frame's prediction)."""
+    out: flow_k = F_k + c_along·D∥ + c_across·D⊥, D = F_{k−1} − F_k split along and across
+    F_k, F_{k−1} the previous frame's own flow (solved for F_k by fixed-point iteration)."""
 
-    def __init__(self, table: FlowTable, lag: float | None = None):
+    def __init__(self, table: FlowTable, lag: tuple[float, float] | None = None):
         self.table = table
-        self.lag = table.lag if lag is None else lag
+        self.along, self.across = table.lag if lag is None else lag
         self.previous_flow = 0j
 
     def __call__(self, flow: complex) -> complex:
-        own = (flow - self.lag * self.previous_flow) / (1.0 - self.lag)
+        own = flow
+        for _ in range(3):
+            if own == 0:
+                break
+            direction = own / abs(own)
+            change = (self.previous_flow - own) * direction.conjugate()
+            own = flow - direction * complex(self.along * change.real, self.across * change.imag)
         velocity = self.table.invert(own)
-        self.previous_flow = self.table.flow(velocity)
+        self.previous_flow = own
         return velocity
 
 
@@ -323,7 +352,7 @@ PACKAGED = Path(__file__).with_name("flow_tables")
 
 
 def flow_table_path(folder: Path, params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(), search: int | None = None) -> Path:
-    return Path(folder) / f"flow-n{params.n}-lam{params.lam:.4g}-{cache_key(params, grid, search)}.npz"
+    return Path(folder) / f"flow-n{params.n}-lam{params.lam:.4g}-alpha{params.alpha:.4g}-{cache_key(params, grid, search)}.npz"
 
 
 def flow_table(params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(), *, search: int | None = None,

@@ -7,7 +7,7 @@ Fourier coefficient of the field at k_j by φ_j = −2π k_j·D / n, so the thre
 lattice's displacement since its warm start modulo its lattice vectors, whatever happened in
 between. A world displacement x (input units) moves module i's lattice by G_i·x (G_i: the
 module's mean calibrated gain times the velocity scale, a complex number in the world-complex
-convention of calibration.py), so each module says where the agent is modulo its spacing, and
+convention of calibration.py, turned by the module's orientation), so each module says where the agent is modulo its spacing, and
 several modules with different spacings (and lattice orientations) together pin it down
 (Fiete, Burak & Brookings 2008). `GridCode.decode` maximises Σ_ij cos(φ_ij − φ_ij(x)) over x
 within a radius of a prior (the integrated position): on a grid of candidates, then Newton
@@ -42,20 +42,21 @@ def lattice_wavevectors(field: np.ndarray, count: int = 3) -> np.ndarray:
 class GridCode:
     """Phases of every module's lattice and the position they encode."""
 
-    def __init__(self, tables: tuple[FlowTable, ...], velocity_scale: float):
+    def __init__(self, tables: tuple[FlowTable, ...], velocity_scale: float, rotations=None):
         self.tables = tables
         n = tables[0].params.n
         self.n = n
         rows = np.arange(n)
         self._waves, self._reference, coefficients, spacings = [], [], [], []
-        for table in tables:
+        rotations = np.ones(len(tables)) if rotations is None else np.asarray(rotations)
+        for table, rotation in zip(tables, rotations):
             waves = lattice_wavevectors(table.warm_field)
             basis = np.exp(-2j * np.pi * (waves[:, 0, None, None] * rows[None, :, None] + waves[:, 1, None, None] * rows[None, None, :]) / n)
             self._waves.append(basis)
             self._reference.append(np.einsum("kij,ij->k", basis, table.warm_field.astype(np.float64)))
             # The mean gain over the linear range (drives 0.03 to 0.25) and all directions.
             drives = table.speeds * table.params.alpha
-            gain = velocity_scale * table.gain[:, (drives >= 0.03) & (drives <= 0.25)].mean()
+            gain = velocity_scale * rotation * table.gain[:, (drives >= 0.03) & (drives <= 0.25)].mean()
             ky, kx = waves[:, 0].astype(float), waves[:, 1].astype(float)
             # φ(x) = −2π/n (kx·Re w − ky·Im w), w = gain·x: linear in (Re x, Im x).
             a = -2 * np.pi / n * (kx * gain.real - ky * gain.imag)

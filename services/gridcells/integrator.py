@@ -132,20 +132,51 @@ class PathIntegrator:
 DECODER_NAMES = (*DECODERS, "calibrated")
 STEP_SOURCES = ("odometry", "lattice")
 HEADING_MODELS = ("sum", "ring")
-# Grid modules: λ of module k is 18·MODULE_RATIO^e for e in MODULE_EXPONENTS[:N], so the
-# lattice periods are ~25, ~18, ~35 and ~12.5 neurons (ratio ≈ 1.4 between neighbours, as
-# between the grid modules of rodents; Stensola et al. 2012). Beyond these the lattice no
-# longer forms a hexagonal pattern on a 128² torus (λ = 35: square, period 64).
+# Grid modules differ in their velocity gain: module k has α·MODULE_RATIO^e for e in
+# MODULE_EXPONENTS[:N]. The network's lattice period is the same (~25 neurons), so its period
+# in the world, the grid spacing, is divided by the gain (Burak & Fiete 2009): neighbouring
+# spacings differ by the ratio ≈ 1.4 measured between the grid modules of rodents (Stensola et
+# al. 2012). Modules made by changing λ instead (a lattice period of ~18 or ~35 neurons on the
+# 128² torus) flow far less regularly: their calibrated velocity is 2× and 10× noisier.
 MODULE_RATIO = 1.4
 MODULE_EXPONENTS = (0, -1, 1, -2)
 MAX_MODULES = len(MODULE_EXPONENTS)
+
+
+# Module 0's sheet is turned by this much against the world. Within ~4° of the sheet's axes
+# (rows and columns, every 90°) the lattice's flow changes its direction and speed sharply with
+# the direction of travel (by up to 0.3° and 0.1 % within a degree), more than a table can
+# follow; routes run mostly along their start heading and across it (roads, corridors), so
+# the sheet's axes are kept off those. (The axes of rats' grids are turned by about 7.5°
+# against the walls of their box; Stensola et al. 2015.)
+MODULE_ORIENTATION = math.radians(7.5)
+
+
+# Within AXIS_BAND of its sheet's axes a module's calibrated direction errs by up to ~0.1° per
+# frame (the table cannot follow the flow there); with several modules, such a module's
+# estimate counts AXIS_WEIGHT times its usual weight (at most one of N ≤ 3 modules is there).
+AXIS_BAND = math.radians(6.0)
+AXIS_WEIGHT = 0.05
+
+
+def _near_axis(velocity: complex) -> bool:
+    """Whether a velocity in a module's sheet frame runs within AXIS_BAND of the sheet's axes."""
+    angle = math.atan2(velocity.imag, velocity.real) % (math.pi / 2)
+    return min(angle, math.pi / 2 - angle) < AXIS_BAND
+
+
+def module_rotations(modules: int) -> np.ndarray:
+    """The orientation of each module's sheet against the world, rad: MODULE_ORIENTATION +
+    k·90°/N, so that any direction of travel is near the sheet axes of one module at most (grid
+    modules differ in orientation too; Stensola et al. 2012)."""
+    return MODULE_ORIENTATION + np.arange(modules) * (math.pi / 2) / modules
 
 
 def module_params(params: NetworkParams, modules: int) -> tuple[NetworkParams, ...]:
     """The parameters of ``modules`` grid modules around ``params`` (module 0 is ``params``)."""
     if not 1 <= modules <= MAX_MODULES:
         raise GridCellError(f"modules={modules}: choose 1 to {MAX_MODULES}")
-    return tuple(replace(params, lam=params.lam * MODULE_RATIO**e) if e else params for e in MODULE_EXPONENTS[:modules])
+    return tuple(replace(params, alpha=params.alpha * MODULE_RATIO**e) if e else params for e in MODULE_EXPONENTS[:modules])
 
 
 def turn_first(forward: float, left: float, yaw: float) -> tuple[float, float]:
@@ -168,9 +199,9 @@ class GridCellIntegrator(PathIntegrator):
     ``step``: "odometry" (eq. 5: the step length from the ego-motion, the direction from the
     lattice) or "lattice" (the whole displacement from the calibrated flow: the network alone
     integrates the path; needs the calibrated decoder). ``modules`` (calibrated decoder):
-    N networks of different lattice spacings (module_params), run as one batch, each decoded;
-    their velocity estimates are combined weighted by their precision (1/noise² of their
-    calibration). ``heading``: "sum" (heading += yaw, the paper's) or "ring" (a head-direction
+    N networks of different grid spacings (velocity gains: module_params) and orientations
+    (module_rotations), run as one batch, each decoded; their velocity estimates are combined
+    weighted by their precision (1/noise² of their calibration). ``heading``: "sum" (heading += yaw, the paper's) or "ring" (a head-direction
     ring attractor integrates the yaw: heading.py).
 
     ``velocity_scale`` converts input units to network units (see auto_velocity_scale); the
@@ -219,6 +250,7 @@ class GridCellIntegrator(PathIntegrator):
             self._searches = (self.search,)
         elif decoder == "calibrated":
             self.tables = tuple(flow_table(p, calibration_grid, cache=calibration_cache) for p in module_params(params, modules))
+            self.rotations = np.exp(1j * module_rotations(modules))  # world → module k: × rotations[k]
             self.network = NetworkStack(tuple(t.params for t in self.tables), settle=False)
             self.network.state = np.stack([t.warm_state for t in self.tables])
             self.network.set_field(np.stack([t.warm_field for t in self.tables]))
@@ -260,6 +292,9 @@ class GridCellIntegrator(PathIntegrator):
         scale = self.velocity_scale
         if isinstance(self.network, GridNetwork):
             return self.network.run((vx * scale, vy * scale))[None]
+        if self.decoder == "calibrated":
+            velocities = complex(vx, vy) * scale * self.rotations
+            return self.network.run(np.column_stack([velocities.real, velocities.imag]))
         return self.network.run((vx * scale, vy * scale))
 
     def _advance(self, vx: float, vy: float, heading: float, clipped: bool = False) -> GridStep:
@@ -278,8 +313,15 @@ class GridCellIntegrator(PathIntegrator):
         x, y, step_length = self._pose.x, self._pose.y, 0.0
         if self.decoder == "calibrated":
             estimates = [inverter(complex(a, -b)) for inverter, (a, b) in zip(self._inverters, shifts)]
-            velocity = sum(w * u for w, u in zip(self.weights, estimates)) / scale  # input units per frame
-            saturated = saturated or any(abs(u) > t.max_speed for u, t in zip(estimates, self.tables))
+            # A module whose flow left its table or reached its search edge is left out of
+            # this frame's combination (the others still read it), unless all did.
+            within = np.array([abs(u) <= t.max_speed and max(abs(a), abs(b)) < search - 0.5
+                               for u, t, (a, b), search in zip(estimates, self.tables, shifts, self._searches)])
+            weights = self.weights * within if within.any() else self.weights
+            if len(estimates) > 1:  # near its sheet's axes a module's flow is erratic: lean on the others
+                weights = weights * np.array([AXIS_WEIGHT if _near_axis(u) else 1.0 for u in estimates])
+            velocity = sum(w * u / rotation for w, u, rotation in zip(weights, estimates, self.rotations)) / weights.sum() / scale
+            saturated = saturated or not within.all()
             if self.step_source == "lattice":
                 x, y, step_length = x + velocity.real, y + velocity.imag, abs(velocity)
             elif velocity != 0:  # eq. 5 with the calibrated direction

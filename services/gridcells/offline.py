@@ -97,7 +97,7 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
         increments = increments @ np.array([[c, s], [-s, c]])
         heading_input = None if heading_input is None else heading_input + rotation
     every = max(1, int(n * PROGRESS_EVERY))
-    code = GridCode(integrator.tables, integrator.velocity_scale) if getattr(integrator, "tables", ()) else None
+    code = GridCode(integrator.tables, integrator.velocity_scale, integrator.rotations) if getattr(integrator, "tables", ()) else None
     coded = np.zeros(n, dtype=complex)
     started = time.perf_counter()
     for k in range(n):

@@ -43,7 +43,7 @@ def synthetic_table(params=NetworkParams()) -> FlowTable:
     speeds = np.array([0.002, 0.02, 0.08, 0.15])
     gain = 37.0 * (1 - 0.5 * speeds[None, :] ** 2) * np.exp(1j * np.radians(0.3) * np.sin(2 * angles)[:, None])
     zeros = np.zeros((params.n, params.n), dtype=np.float32)
-    return FlowTable(params, 9, angles, speeds, gain, np.zeros(gain.shape), 0.03, 1e-4, zeros, zeros)
+    return FlowTable(params, 9, angles, speeds, gain, np.zeros(gain.shape), (0.03, 0.02), 1e-4, zeros, zeros)
 
 
 @pytest.mark.parametrize("velocity", [0.05 + 0.02j, -0.1j, -0.001 + 0.0003j, 0.12 * cmath.exp(1j * 2.1)])
@@ -80,7 +80,8 @@ def test_measured_table_of_a_real_network(small_table):
     # faster), turned by a few degrees at most.
     assert np.all((30 < np.abs(table.gain)) & (np.abs(table.gain) < 60)), np.abs(table.gain)
     assert np.all(np.abs(np.degrees(np.angle(table.gain))) < 3.0)
-    assert 0.0 < table.lag < 0.1
+    along, across = table.lag  # 3 % and 2 % at n = 128; 40 frames of the small sheet say less
+    assert 0.0 < along < 0.1 and abs(across) < 0.1
     assert table.noise > 0 and 2 <= table.search <= 9
     assert table.warm_state.shape == (64, 64)
 
@@ -123,12 +124,12 @@ def test_modules_combine_and_decode_a_position():
     params = NetworkParams(n=64)
     integrator = GridCellIntegrator(params, decoder="calibrated", velocity_scale=2.0, modules=2, step="lattice",
                                     calibration_cache=False, calibration_grid=SMALL_GRID)
-    assert [t.params.lam for t in integrator.tables] == pytest.approx([18.0, 18.0 / 1.4])
+    assert [t.params.alpha for t in integrator.tables] == pytest.approx([2.0, 2.0 / 1.4])
     assert integrator.weights.sum() == pytest.approx(1.0) and np.all(integrator.weights > 0)
     for _ in range(20):
         integrator.step(0.03, 0.0, 0.01)
     position = complex(integrator.pose.x, integrator.pose.y)
-    code = GridCode(integrator.tables, integrator.velocity_scale)
+    code = GridCode(integrator.tables, integrator.velocity_scale, integrator.rotations)
     decoded = code.decode(integrator.network.fields, prior=position + 0.3 * code.spacings.min())
     # The phases bring a prior off by 0.3 spacings back to the integrated position.
     assert abs(decoded - position) < 0.1 * code.spacings.min(), (decoded, position, code.spacings)
