@@ -196,15 +196,19 @@ def trajectory_metrics(est: Trajectory, reference: Trajectory | None, deadreckon
 def direction_errors(est: Trajectory, deadreckoning: Trajectory) -> dict:
     """How the integrator's per-frame displacement and heading differ from dead reckoning of
     the same inputs (its input): the direction of travel per frame (rms and mean, degrees,
-    over the frames where both moved), the step length (mean ratio) and the heading (final and
-    largest difference, degrees: the drift of a heading model against the summed yaw)."""
+    over the frames where both moved; and the rms weighted by the step length, which frames
+    of almost no motion, whose direction means little, do not dominate), the step length (mean
+    ratio) and the heading (final and largest difference, degrees: the drift of a heading
+    model against the summed yaw)."""
     step_est, step_dr = np.diff(est.positions[:, :2], axis=0), np.diff(deadreckoning.positions[:, :2], axis=0)
     moved = (np.hypot(*step_dr.T) > 0) & (np.hypot(*step_est.T) > 0)
     result = {}
     if np.any(moved):
         angle = np.angle((step_est[moved, 0] + 1j * step_est[moved, 1]) / (step_dr[moved, 0] + 1j * step_dr[moved, 1]))
+        length = np.hypot(*step_dr[moved].T)
         result |= {"direction_rms_deg": float(np.degrees(np.sqrt(np.mean(angle**2)))),
                    "direction_mean_deg": float(np.degrees(angle.mean())),
+                   "direction_weighted_rms_deg": float(np.degrees(np.sqrt(np.sum((length * angle) ** 2) / np.sum(length**2)))),
                    "step_ratio_mean": float(np.mean(np.hypot(*step_est[moved].T) / np.hypot(*step_dr[moved].T)))}
     heading = np.degrees(np.abs(wrap_angle(est.planar()[2] - deadreckoning.planar()[2])))
     result |= {"heading_difference_end_deg": float(heading[-1]), "heading_difference_max_deg": float(heading.max())}
@@ -398,6 +402,7 @@ def _direction_rows(metrics: dict, name: str) -> list[tuple[str, object, str]]:
     rows = []
     if "direction_rms_deg" in metrics:
         rows += [(f"{name} direction vs input, rms", metrics["direction_rms_deg"], "deg/frame"),
+                 (f"{name} direction vs input, rms weighted by step", metrics["direction_weighted_rms_deg"], "deg/frame"),
                  (f"{name} direction vs input, mean", metrics["direction_mean_deg"], "deg/frame")]
     return rows + [(f"{name} heading vs summed yaw, end", metrics["heading_difference_end_deg"], "deg"),
                    (f"{name} heading vs summed yaw, max", metrics["heading_difference_max_deg"], "deg")]
