@@ -230,11 +230,10 @@ def main(argv: list[str] | None = None) -> int:
     rows = {n: measure(n, args.repeats, args.slow_repeats) for n in sizes}
     print(f"Grid-cell integrator: ms per camera frame, wall clock / thread CPU time, medians of {args.repeats} "
           f"frames ({args.slow_repeats} for the paper decoders); load average before {load_before}, after "
-          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
+          f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}; FFT backend of the fast network: {fft_backend()}\n")
     growth = [f"{a}→{b}" for a, b in zip(sizes, sizes[1:])]
     print("| ms per frame | " + " | ".join(f"n={n}" for n in sizes) + "".join(f" | growth {g} (CPU)" for g in growth) + " |")
     print("|---|" + "---:|" * (len(sizes) + len(growth)))
-    print(f"FFT backend: {fft_backend()}\n")
     for key, title in ROWS:
         if key not in rows[sizes[0]]:
             continue

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from services.gridcells.calibration import CalibrationGrid, FlowTable, LagInverter, flow_table
-from services.gridcells.decoders import DECODERS
+from services.gridcells.decoders import DECODERS, SubpixelReader
 from services.gridcells.heading import RingHeading
 from services.gridcells.network import GridCellError, GridNetwork, NetworkParams, NetworkStack
 
@@ -260,12 +260,19 @@ class GridCellIntegrator(PathIntegrator):
             self.weights = weights / weights.sum()
             self._previous = self.network.fields
             self._searches = tuple(min(self.search, t.search) for t in self.tables)
-        else:
+        else:  # the fast network, or one given (a GridNetwork: today's formulation, in bench.py)
             self.network = network or NetworkStack(params)
             self.params = self.network.params
-            self._previous = self.network.fields
+            self._previous = self.network.field[None] if isinstance(self.network, GridNetwork) else self.network.fields
             self._searches = (self.search,)
-        self._decode = DECODERS["subpixel" if decoder == "calibrated" else decoder]
+        self._decode = DECODERS[decoder] if decoder in ("paper", "fft") else None
+        self._readers = self._make_readers()
+
+    def _make_readers(self) -> list[SubpixelReader] | None:
+        """subpixel and calibrated: one reader per module (each field transformed once)."""
+        if self._decode is not None or self._previous is None:
+            return None
+        return [SubpixelReader(previous, search) for previous, search in zip(self._previous, self._searches)]
 
     @property
     def activity(self) -> np.ndarray:
@@ -305,7 +312,10 @@ class GridCellIntegrator(PathIntegrator):
         if previous is None:  # the authors' first frame only stores the pattern
             self._pose = Pose2D(self._pose.x, self._pose.y, heading)
             return GridStep(self._pose, (0.0, 0.0), 0.0, False)
-        shifts = [self._decode(previous[i], fields[i], search) for i, search in enumerate(self._searches)]
+        if self._readers is not None:
+            shifts = [reader(field) for reader, field in zip(self._readers, fields)]
+        else:
+            shifts = [self._decode(previous[i], fields[i], search) for i, search in enumerate(self._searches)]
         dx, dy = shifts[0]
         speed = math.hypot(vx, vy)
         saturated = (self.params.alpha * speed * scale > LINEAR_LIMIT or clipped
@@ -359,6 +369,7 @@ class GridCellIntegrator(PathIntegrator):
         self.network.state = state[0] if isinstance(self.network, GridNetwork) and state.ndim == 3 else state
         previous = checkpoint["previous"]
         self._previous = None if previous is None else np.asarray(previous).reshape((-1,) + np.shape(previous)[-2:])
+        self._readers = self._make_readers()
         if self.decoder == "calibrated" and "previous_flow" in checkpoint:
             for inverter, flow in zip(self._inverters, np.asarray(checkpoint["previous_flow"]).ravel()):
                 inverter.previous_flow = complex(flow)

@@ -395,11 +395,25 @@ class NetworkStack:
             self._rates = pyfftw.empty_aligned(spectral, dtype=np.complex64)
             self._spectrum = pyfftw.empty_aligned(spectral, dtype=np.complex64)
             self._h = pyfftw.empty_aligned(shape, dtype=np.float32)
-            # The inverse (complex to real, two-dimensional) overwrites its input: the spectrum
-            # is cleared before every product.
-            self._forward = pyfftw.FFTW(self._r, self._rates, axes=(-2, -1), flags=("FFTW_MEASURE",), threads=1)
-            self._inverse = pyfftw.FFTW(self._spectrum, self._h, axes=(-2, -1), direction="FFTW_BACKWARD",
-                                        flags=("FFTW_MEASURE", "FFTW_DESTROY_INPUT"), threads=1)
+            plan = functools.partial(pyfftw.FFTW, flags=("FFTW_MEASURE",), threads=1)
+            if self.rank_one:
+                # Pruned: the product needs, and the recurrent spectrum has, only the first
+                # `width` columns. Forward: rows (real to complex), then those columns.
+                # Inverse: those columns into a buffer whose other columns are zero, then rows
+                # (complex to real, which overwrites its input: the zero columns are cleared
+                # again each step). The spectrum itself is never overwritten outside the band.
+                w = self._width
+                self._columns = pyfftw.empty_aligned(spectral, dtype=np.complex64)
+                self._columns[...] = 0
+                steps = [plan(self._r, self._rates, axes=(-1,)), plan(self._rates[..., :w], self._rates[..., :w], axes=(-2,))]
+                self._forward = lambda: [step.execute() for step in steps]
+                inverse = [plan(self._spectrum[..., :w], self._columns[..., :w], axes=(-2,), direction="FFTW_BACKWARD"),
+                           plan(self._columns, self._h, axes=(-1,), direction="FFTW_BACKWARD")]
+                tail = self._columns[..., w:]
+                self._inverse = lambda: (inverse[0].execute(), tail.fill(0), inverse[1].execute())
+            else:  # (the full product rewrites the whole spectrum, which the inverse overwrites)
+                self._forward = plan(self._r, self._rates, axes=(-2, -1)).execute
+                self._inverse = plan(self._spectrum, self._h, axes=(-2, -1), direction="FFTW_BACKWARD").execute
         else:
             self._r = np.zeros(shape, dtype=np.float32)
             self._rates = np.zeros(spectral, dtype=np.complex64)
@@ -463,14 +477,13 @@ class NetworkStack:
         fftw = self.backend == "fftw"
         for _ in range(self.params.steps_per_frame if steps is None else steps):
             if fftw:
-                self._forward.execute()
-                spectrum.fill(0)
+                self._forward()
             else:
                 rates[...] = scipy.fft.rfft2(r)
             self._product()
             spectrum[:, :, 0, 0] += dc
             if fftw:
-                self._inverse.execute()
+                self._inverse()
             else:
                 h[...] = scipy.fft.irfft2(spectrum, s=(m, m), norm="forward")
             np.maximum(h, zeros, out=f)
