@@ -128,9 +128,17 @@ def ring_calibration(params: RingParams = RingParams(), points: int = 41, frames
     return RingCalibration(tilts, turns)
 
 
+# The largest turn the ring makes in one of its frames: a larger yaw is integrated over as many
+# ring frames as it takes (the ring follows 30° per frame within 0.13°, 60° within 0.8°, and
+# its bump breaks up near 150°: docs/gridcells.md). A walk reflected off a wall turns by up to
+# 180° between two frames.
+MAX_TURN_PER_RING_FRAME = math.radians(30.0)
+
+
 class RingHeading:
     """Heading integration by the ring: each frame's yaw becomes a tilt (via the calibration),
-    the ring runs one frame, the heading is decoded from the bump."""
+    the ring runs one frame (or more, for a yaw beyond MAX_TURN_PER_RING_FRAME), the heading is
+    decoded from the bump."""
 
     def __init__(self, heading0: float = 0.0, params: RingParams = RingParams()):
         self.calibration = ring_calibration(params)
@@ -142,10 +150,12 @@ class RingHeading:
 
     def step(self, yaw: float) -> tuple[float, bool]:
         """Integrate one frame's yaw (rad); returns the decoded heading and whether the yaw
-        exceeded the ring's range."""
-        tilt, clipped = self.calibration.tilt_for(yaw)
+        exceeded the ring's range (it cannot: large yaws take several ring frames)."""
+        frames = max(1, math.ceil(abs(yaw) / MAX_TURN_PER_RING_FRAME))
+        tilt, clipped = self.calibration.tilt_for(yaw / frames)
         self.clipped += clipped
-        self.ring.run(tilt)
+        for _ in range(frames):
+            self.ring.run(tilt)
         return math.remainder(self.ring.heading + self.offset, 2 * math.pi), clipped
 
     @property

@@ -201,8 +201,11 @@ class GridCellIntegrator(PathIntegrator):
     integrates the path; needs the calibrated decoder). ``modules`` (calibrated decoder):
     N networks of different grid spacings (velocity gains: module_params) and orientations
     (module_rotations), run as one batch, each decoded; their velocity estimates are combined
-    weighted by their precision (1/noise² of their calibration). ``heading``: "sum" (heading += yaw, the paper's) or "ring" (a head-direction
-    ring attractor integrates the yaw: heading.py).
+    weighted by their precision (1/noise² of their calibration), a module near its sheet's
+    axes or beyond its table counting less or not at all. ``heading``: "sum" (heading += yaw,
+    the paper's) or "ring" (a head-direction ring attractor integrates the yaw: heading.py).
+    ``network``: the network to drive (a GridNetwork for `paper`, a NetworkStack otherwise;
+    default a new one).
 
     ``velocity_scale`` converts input units to network units (see auto_velocity_scale); the
     step length stays in input units. A frame is ``saturated`` when the network is driven
@@ -218,7 +221,7 @@ class GridCellIntegrator(PathIntegrator):
         decoder: str = "subpixel",
         velocity_scale: float = 1.0,
         heading0: float = 0.0,
-        network: GridNetwork | None = None,
+        network: GridNetwork | NetworkStack | None = None,
         *,
         search: int = 9,
         step: str = "odometry",
@@ -260,10 +263,10 @@ class GridCellIntegrator(PathIntegrator):
             self.weights = weights / weights.sum()
             self._previous = self.network.fields
             self._searches = tuple(min(self.search, t.search) for t in self.tables)
-        else:  # the fast network, or one given (a GridNetwork: today's formulation, in bench.py)
+        else:
             self.network = network or NetworkStack(params)
             self.params = self.network.params
-            self._previous = self.network.field[None] if isinstance(self.network, GridNetwork) else self.network.fields
+            self._previous = self.network.fields
             self._searches = (self.search,)
         self._decode = DECODERS[decoder] if decoder in ("paper", "fft") else None
         self._readers = self._make_readers()
@@ -318,8 +321,7 @@ class GridCellIntegrator(PathIntegrator):
             shifts = [self._decode(previous[i], fields[i], search) for i, search in enumerate(self._searches)]
         dx, dy = shifts[0]
         speed = math.hypot(vx, vy)
-        saturated = (self.params.alpha * speed * scale > LINEAR_LIMIT or clipped
-                     or any(max(abs(a), abs(b)) >= search - 0.5 for (a, b), search in zip(shifts, self._searches)))
+        saturated = self.params.alpha * speed * scale > LINEAR_LIMIT or clipped or max(abs(dx), abs(dy)) >= self._searches[0] - 0.5
         x, y, step_length = self._pose.x, self._pose.y, 0.0
         if self.decoder == "calibrated":
             estimates = [inverter(complex(a, -b)) for inverter, (a, b) in zip(self._inverters, shifts)]
@@ -331,7 +333,7 @@ class GridCellIntegrator(PathIntegrator):
             if len(estimates) > 1:  # near its sheet's axes a module's flow is erratic: lean on the others
                 weights = weights * np.array([AXIS_WEIGHT if _near_axis(u) else 1.0 for u in estimates])
             velocity = sum(w * u / rotation for w, u, rotation in zip(weights, estimates, self.rotations)) / weights.sum() / scale
-            saturated = saturated or not within.all()
+            saturated = saturated or not within.any()
             if self.step_source == "lattice":
                 x, y, step_length = x + velocity.real, y + velocity.imag, abs(velocity)
             elif velocity != 0:  # eq. 5 with the calibrated direction

@@ -62,3 +62,12 @@ def test_bad_ring_parameters():
         RingParams(j1=1.5)
     with pytest.raises(ConfigError, match="j0"):
         RingParams(j0=0.5)
+
+
+def test_a_yaw_beyond_the_ring_frame_limit_takes_several_ring_frames():
+    """A walk reflected off a wall turns by up to 180° in one frame: the heading model splits
+    it over ring frames of at most 30° and keeps up."""
+    ring = RingHeading(0.0)
+    heading, clipped = ring.step(math.radians(170))
+    assert not clipped
+    assert math.degrees(abs(math.remainder(heading - math.radians(170), 2 * math.pi))) < 0.2
