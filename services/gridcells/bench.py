@@ -231,6 +231,13 @@ def print_sweeps() -> None:
     followed = [rate for rate, worst, _ in ring if worst < 1.0]
     print(f"\nlargest rate followed within 1°: {max(followed) if followed else 0:g}° per frame "
           f"(the ring's range: {math.degrees(ring_calibration().max_turn):.1f}° per frame)")
+    still = []
+    for start in (0.3, 1.0, 2.5):  # at rest: the bump settles onto the cells (half a spacing at most)
+        ring = RingHeading(start)
+        for _ in range(1000):
+            heading, _ = ring.step(0.0)
+        still.append(abs(math.degrees(math.remainder(heading - start, 2 * math.pi))))
+    print(f"at rest for 1000 frames, from headings 0.3, 1.0, 2.5 rad: moved by {', '.join(f'{d:.3f}°' for d in still)}")
 
 
 def main(argv: list[str] | None = None) -> int:
