@@ -224,14 +224,15 @@ def measure_flow(params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(
     batch.set_field(np.repeat(warm_field[None], half, axis=0))
     gain = np.zeros((half, len(speeds)), dtype=complex)
     scatter = np.zeros((half, len(speeds)))
-    nominal = 0.383 * params.alpha * params.steps_per_frame  # neurons per frame per network unit (about)
+    nominal = 0.383 * params.alpha * params.steps_per_frame  # neurons per frame per network unit (integrator.LATTICE_RATE)
     measured = len(speeds)
     for k, speed in enumerate(speeds):
         frames = int(np.clip(math.ceil(grid.travel / (nominal * speed)), grid.min_frames, grid.max_frames))
         previous = None
         flows = np.zeros((frames, half), dtype=complex)
         for frame in range(grid.settle_frames + frames):
-            fields = _run_directions(batch, speed * unit)
+            velocities = speed * unit
+            fields = batch.run(np.column_stack([velocities.real, velocities.imag]))
             if frame >= grid.settle_frames:
                 for j in range(half):
                     dx, dy = decode_subpixel(previous[j], fields[j], search)
@@ -256,11 +257,6 @@ def measure_flow(params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(
     log.info("calibrated the lattice flow of λ=%g (n=%d, α=%g) in %.1f s: lag %.3f along, %.3f across, noise %.3g units/frame",
              params.lam, params.n, params.alpha, seconds, *lag, noise)
     return FlowTable(params, search, angles, speeds, gain, scatter, lag, noise, table.warm_state, table.warm_field, seconds)
-
-
-def _run_directions(batch: NetworkStack, velocities: np.ndarray) -> np.ndarray:
-    """One frame of a batch whose module j gets velocities[j] (complex, world frame)."""
-    return batch.run(np.column_stack([velocities.real, velocities.imag]))
 
 
 def check_velocities(frames: int, speed: float, seed: int = 0) -> np.ndarray:

@@ -30,8 +30,10 @@ that (4, n/2, n/2) layout between steps.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
+import os
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -286,8 +288,6 @@ def fft_backend() -> str:
     """The FFT library the fast network uses: pyFFTW (FFTW 3, about twice scipy.fft's speed on
     the 64×64 sub-lattices) when it is installed (`pip install gridslam[fftw]`), scipy.fft
     otherwise; GRIDSLAM_FFT=scipy forces scipy.fft."""
-    import os
-
     choice = os.environ.get("GRIDSLAM_FFT", "").strip().lower()
     if choice and choice not in FFT_BACKENDS:
         raise ConfigError(f"GRIDSLAM_FFT={choice!r}: choose one of {', '.join(FFT_BACKENDS)}")
@@ -312,7 +312,7 @@ def _rank_one_factors(params: NetworkParams) -> tuple[np.ndarray, np.ndarray, np
     n, m = params.n, params.n // 2
     qy = np.fft.fftfreq(m, 1.0 / m)[:, None]  # sub-lattice frequency, represented in [-m/2, m/2)
     qx = np.fft.rfftfreq(m, 1.0 / m)[None, :]
-    base = np.fft.ifftshift(shifted_kernels(replace_l(params, 0))[0])  # W0 centred at index 0
+    base = np.fft.ifftshift(shifted_kernels(dataclasses.replace(params, l=0))[0])  # W0 centred at index 0
     spectrum = scipy.fft.fft2(base)[qy.astype(int) % n, qx.astype(int) % n].real  # W0 is even
     band = np.abs(spectrum) > BAND_EPSILON * np.abs(spectrum).max()
     shifts = {"left": (0, -params.l), "up": (-params.l, 0), "down": (params.l, 0), "right": (0, params.l)}
@@ -320,10 +320,6 @@ def _rank_one_factors(params: NetworkParams) -> tuple[np.ndarray, np.ndarray, np
     p = np.stack([phase(i, j) * np.ones_like(spectrum) for i, j in OFFSETS])
     a = np.stack([0.25 * spectrum * phase(-(i + shifts[d][0]), -(j + shifts[d][1])) for d, (i, j) in zip(DIRECTIONS, OFFSETS)])
     return p, a, band
-
-
-def replace_l(params: NetworkParams, l: int) -> NetworkParams:
-    return NetworkParams(**{f.name: getattr(params, f.name) for f in fields(params)} | {"l": l})
 
 
 class NetworkStack:
@@ -337,10 +333,10 @@ class NetworkStack:
       is a forward FFT, the kernel product, an inverse FFT and four in-place array operations;
     - the kernel product runs on the band where the kernel is not negligible, in its rank-one
       form (see _rank_one_factors), when that form matches the exact kernel to 1e-6 of its peak
-      (the default λ = 18: 3e-8; a small λ whose kernel reaches the sub-lattice Nyquist
-      frequency falls back to the full 4×4 product);
-    - FFTW (pyFFTW) plans on fixed buffers when it is installed, scipy.fft otherwise
-      (fft_backend()).
+      (λ = 18 at n = 128: 5e-8); otherwise (λ = 18 on a 64² sheet, which truncates the kernel)
+      on all bins with the full 4×4 product;
+    - FFTW (pyFFTW) plans on fixed buffers when it is installed, pruned to the band's columns,
+      scipy.fft otherwise (fft_backend()).
     """
 
     def __init__(self, params: NetworkParams | tuple[NetworkParams, ...] = NetworkParams(), *, settle: bool = True,
