@@ -63,7 +63,11 @@ class RunConfig(BaseModel):
     egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
         None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
-    decoder: Literal["paper", "fft", "subpixel"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
+    decoder: Literal["paper", "fft", "subpixel", "calibrated"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
+    step_source: Literal["odometry", "lattice"] | None = Field(
+        None, description="Grid-cell step length from the ego-motion (default) or the calibrated lattice flow.")
+    modules: int | None = Field(None, ge=1, le=4, description="Grid modules (default 1).")
+    heading: Literal["sum", "ring"] | None = Field(None, description="Heading model: summed yaw (default) or a ring attractor.")
     preset: str | None = Field(
         None, description="Dataset preset passed to every service that has one, or a preset file (base preset and "
                           "per-service tables, docs/sources.md).")
@@ -254,6 +258,9 @@ def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
     if name == "gridcells":
         args += ["--integrator", config.integrator, "--checkpoint", str(folder / GRID_CHECKPOINT)]
         args += ["--decoder", config.decoder] if config.decoder else []
+        args += ["--step", config.step_source] if config.step_source else []
+        args += ["--modules", str(config.modules)] if config.modules else []
+        args += ["--heading", config.heading] if config.heading else []
     if name == "viewer":
         args += ["--http", config.view]
     if name == "foxglove":
