@@ -21,30 +21,67 @@ class FeatureParams:
     bucket_size_px: int = 50
     features_per_bucket: int = 4
     border_px: int = 12  # no features where the tracking window would leave the image
+    min_distance_px: int = 3  # no new corner within this square half-width of a held feature
 
 
-def detect_bucketed(image: np.ndarray, params: FeatureParams, mask: np.ndarray | None = None) -> np.ndarray:
+def detect_bucketed(
+    image: np.ndarray, params: FeatureParams, mask: np.ndarray | None = None, held: np.ndarray | None = None
+) -> np.ndarray:
     """FAST corners, strongest ``features_per_bucket`` per bucket, as an (N, 2) float32 array.
+
+    ``held`` (M, 2) are features the caller already has (e.g. tracked from the last frame):
+    each bucket is then only topped up to ``features_per_bucket``, with corners at least
+    ``params.min_distance_px`` from every held feature (not the same corner again).
 
     If the image yields few corners at the configured threshold, the threshold is lowered once
     (to a quarter) so that low-contrast images still give something to track.
     """
+    size, height, width = params.bucket_size_px, image.shape[0], image.shape[1]
+    columns = width // size + 1
+    buckets_total = (height // size + 1) * columns
+    room = np.full(buckets_total, params.features_per_bucket, np.int64)
+    if held is not None and len(held):
+        room -= np.bincount(bucket_of(held, size, columns), minlength=buckets_total)
+        mask = _free(mask, held, room.reshape(-1, columns) > 0, size, params.min_distance_px, image.shape[:2])
     points, responses = _fast(image, params.fast_threshold, params.border_px, mask)
-    buckets_total = (image.shape[0] // params.bucket_size_px + 1) * (image.shape[1] // params.bucket_size_px + 1)
-    if len(points) < buckets_total and params.fast_threshold > 4:
+    if len(points) + (0 if held is None else len(held)) < buckets_total and params.fast_threshold > 4:
         points, responses = _fast(image, max(2, params.fast_threshold // 4), params.border_px, mask)
     if len(points) == 0:
         return np.empty((0, 2), np.float32)
-    columns = image.shape[1] // params.bucket_size_px + 1
-    bucket = (points[:, 1] // params.bucket_size_px).astype(np.int64) * columns + (
-        points[:, 0] // params.bucket_size_px
-    ).astype(np.int64)
-    order = np.lexsort((-responses, bucket))  # by bucket, strongest first within a bucket
-    bucket_sorted = bucket[order]
-    first_of_bucket = np.searchsorted(bucket_sorted, bucket_sorted, side="left")
-    rank = np.arange(len(order)) - first_of_bucket
-    keep = order[rank < params.features_per_bucket]
+    keep = first_per_bucket(bucket_of(points, size, columns), room, -responses)  # strongest first
     return points[keep].astype(np.float32)
+
+
+def bucket_of(points: np.ndarray, size: int, columns: int) -> np.ndarray:
+    """The bucket index (row-major, ``columns`` buckets a row) of each (x, y) point."""
+    return (points[:, 1] // size).astype(np.int64) * columns + (points[:, 0] // size).astype(np.int64)
+
+
+def first_per_bucket(bucket: np.ndarray, limit: int | np.ndarray, rank_by: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the first ``limit`` entries (a number, or one per bucket index) of each
+    bucket, ordered by ``rank_by`` ascending within a bucket (default: as given)."""
+    order = np.lexsort((np.arange(len(bucket)) if rank_by is None else rank_by, bucket))
+    bucket_sorted = bucket[order]
+    rank = np.arange(len(order)) - np.searchsorted(bucket_sorted, bucket_sorted, side="left")
+    limits = limit[bucket_sorted] if isinstance(limit, np.ndarray) else limit
+    return order[rank < limits]
+
+
+def _free(
+    mask: np.ndarray | None, held: np.ndarray, open_buckets: np.ndarray, size: int, distance: int, shape: tuple[int, int]
+) -> np.ndarray:
+    """A detection mask: nonzero in buckets with room, away from the held features."""
+    rows, columns = open_buckets.shape
+    free = cv2.resize(open_buckets.astype(np.uint8) * 255, (columns * size, rows * size), interpolation=cv2.INTER_NEAREST)
+    free = np.ascontiguousarray(free[: shape[0], : shape[1]])
+    near = np.zeros(shape, np.uint8)
+    xy = np.round(held).astype(np.int64)
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] < shape[1]) & (xy[:, 1] >= 0) & (xy[:, 1] < shape[0])
+    near[xy[inside, 1], xy[inside, 0]] = 255
+    if distance > 0:
+        near = cv2.dilate(near, np.ones((2 * distance + 1, 2 * distance + 1), np.uint8))
+    free = cv2.subtract(free, near)
+    return free if mask is None else cv2.bitwise_and(free, mask)
 
 
 def _fast(image: np.ndarray, threshold: int, border: int, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -52,7 +89,7 @@ def _fast(image: np.ndarray, threshold: int, border: int, mask: np.ndarray | Non
     keypoints = detector.detect(image, mask)
     if not keypoints:
         return np.empty((0, 2)), np.empty(0)
-    points = np.array([k.pt for k in keypoints], dtype=np.float64)
+    points = cv2.KeyPoint_convert(keypoints).astype(np.float64)
     responses = np.array([k.response for k in keypoints], dtype=np.float64)
     height, width = image.shape[:2]
     inside = (

@@ -2,10 +2,15 @@
 "StereoScan: Dense 3d reconstruction in real-time", IEEE IV 2011), built from OpenCV parts.
 
 Per frame:
-1. FAST corners in the left image, bucketed so they spread over the image (StereoScan III-A).
-2. Each corner matched into the right image by pyramidal Lucas–Kanade with a forward–backward
+1. Features in the left image, bucketed so they spread over the image (StereoScan III-A): the
+   last frame's inlier tracks, at most features_per_bucket a bucket (carry_tracks), topped up
+   with the strongest new FAST corners (all new when carry_tracks is off, as LIBVISO2 does).
+2. Each feature matched into the right image by pyramidal Lucas–Kanade with a forward–backward
    check; on rectified images a match must lie on the same row (|Δv| ≤ max_row_error_px) with a
-   positive disparity d (StereoScan's epipolar constraint).
+   positive disparity d (StereoScan's epipolar constraint). A carried feature's search starts
+   at the disparity its 3D point predicts after the motion just found, so a shallow pyramid
+   (carried_stereo_pyramid_levels) reaches it; a new one starts at the median of those
+   predictions in its bucket (else the last frame's median disparity), with the full pyramid.
 3. Triangulated: Z = f·b/d, X = (u − cu)·Z/f, Y = (v − cv)·Z/f.
 4. Next frame: those points are tracked from the previous left image into the new one (LK
    seeded with the position the last motion predicts), and the camera transform comes from
@@ -35,7 +40,15 @@ from services.egomotion.base import (
     transform_from_rt,
     zero_increment,
 )
-from services.egomotion.features import FeatureParams, TrackParams, detect_bucketed, global_shift, track
+from services.egomotion.features import (
+    FeatureParams,
+    TrackParams,
+    bucket_of,
+    detect_bucketed,
+    first_per_bucket,
+    global_shift,
+    track,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -45,7 +58,7 @@ class StereoParams(NoiseModel):
     fast_threshold: int = 20
     bucket_size_px: int = 50
     features_per_bucket: int = 4
-    klt_window_px: int = 15
+    klt_window_px: int = 11
     # Stereo matching needs a deeper pyramid than frame-to-frame tracking: disparities of close
     # objects reach ~100 px (NuBot: f·b = 59 px·m, so 0.6 m away is 99 px).
     stereo_pyramid_levels: int = 4
@@ -64,6 +77,12 @@ class StereoParams(NoiseModel):
     quality_inliers: int = 80
     # Seed frame-to-frame tracking with the previous motion (constant-velocity prediction).
     predict: bool = True
+    # Keep the last frame's inlier tracks as this frame's features (buckets topped up with new
+    # corners) and match them into the right image from the disparity their 3D points predict,
+    # with this shallower pyramid; false: detect every frame afresh (LIBVISO2's way). Steps 1–2
+    # of the module docstring.
+    carry_tracks: bool = True
+    carried_stereo_pyramid_levels: int = 1
     # What a failed frame reports: "zero" motion or "hold" the last motion (both with quality 0).
     failure_motion: str = "zero"
 
@@ -76,6 +95,8 @@ class StereoParams(NoiseModel):
             raise ValueError("failure_motion must be 'zero' or 'hold'")
         if self.min_inliers < 4:
             raise ValueError("min_inliers must be at least 4 (PnP needs 4 points)")
+        if self.carried_stereo_pyramid_levels < 0:
+            raise ValueError("carried_stereo_pyramid_levels must be >= 0")
 
     def features(self) -> FeatureParams:
         return FeatureParams(self.fast_threshold, self.bucket_size_px, self.features_per_bucket)
@@ -105,6 +126,7 @@ class StereoEstimator:
         self._keyframe: _StereoKeyframe | None = None
         self._last = zero_increment()
         self._stereo_track = TrackParams(params.klt_window_px, params.stereo_pyramid_levels, params.stereo_forward_backward_px)
+        self._carried_track = TrackParams(params.klt_window_px, params.carried_stereo_pyramid_levels, params.stereo_forward_backward_px)
         self._frame_track = TrackParams(params.klt_window_px, params.track_pyramid_levels, params.forward_backward_px)
 
     def estimate(self, frame: Any) -> Increment:
@@ -120,9 +142,10 @@ class StereoEstimator:
 
         increment = zero_increment()
         to_current = None
+        tracks = None
         keyframe = self._keyframe
         if keyframe is not None and keyframe.left.shape == left.shape:
-            increment = self._motion(keyframe, left, K)
+            increment, tracks = self._motion(keyframe, left, K)
             if increment.quality > 0.0:
                 # Motion since the keyframe; the frame's own increment removes what the
                 # frames between keyframe and now already reported.
@@ -138,7 +161,14 @@ class StereoEstimator:
                 increment = Increment(last.forward, last.left, last.yaw, last.transform, 0.0, increment.inliers, increment.match_cost)
         if increment.quality > 0.0:
             self._last = increment
-        fresh = self._triangulate(left, right, camera)
+        carried = None
+        if to_current is not None and tracks is not None and self.params.carry_tracks:
+            # The inliers' 3D points moved into this camera predict their disparity f·b/Z.
+            positions, points = tracks
+            depth = points @ to_current[2, :3] + to_current[2, 3]
+            ahead = depth > 0
+            carried = (positions[ahead], camera.fx * camera.baseline / depth[ahead])
+        fresh = self._triangulate(left, right, camera, carried)
         if len(fresh.points) >= self.params.min_inliers or to_current is None or keyframe is None:
             self._keyframe = fresh
         else:
@@ -149,19 +179,38 @@ class StereoEstimator:
 
     # -- stereo matching and triangulation (steps 1–3)
 
-    def _triangulate(self, left: np.ndarray, right: np.ndarray, camera: Any) -> _StereoKeyframe:
-        points = detect_bucketed(left, self.params.features())
+    def _triangulate(
+        self, left: np.ndarray, right: np.ndarray, camera: Any, carried: tuple[np.ndarray, np.ndarray] | None
+    ) -> _StereoKeyframe:
+        """Features of ``left`` matched into ``right`` and triangulated. ``carried`` are the
+        features tracked from the last keyframe with the disparities their 3D points predict
+        here: they are kept (at most features_per_bucket a bucket) and only the buckets' rest
+        is detected afresh."""
+        p = self.params
+        columns = left.shape[1] // p.bucket_size_px + 1
+        held, seeds = (np.empty((0, 2), np.float32), np.empty(0)) if carried is None else carried
+        keep = np.sort(first_per_bucket(bucket_of(held, p.bucket_size_px, columns), p.features_per_bucket))
+        held, seeds = held[keep], seeds[keep]
+        new = detect_bucketed(left, p.features(), held=held)
+        # New features are searched from the median disparity the carried ones predict in
+        # their bucket, else from the median disparity of the last frame.
+        new_seeds = np.full(len(new), self._keyframe.disparity_median if self._keyframe is not None else 0.0)
+        if len(held) and len(new):
+            medians = _bucket_medians(bucket_of(held, p.bucket_size_px, columns), seeds, bucket_of(new, p.bucket_size_px, columns))
+            known = np.isfinite(medians)
+            new_seeds[known] = medians[known]
+        points = np.concatenate((held, new)).astype(np.float32)
         if len(points) == 0:
             return _StereoKeyframe(left, points, np.empty((0, 3)))
-        # Seed the right-image search at the median disparity of the last frame.
         guess = points.copy()
-        if self._keyframe is not None:
-            guess[:, 0] -= self._keyframe.disparity_median
-        matched, good = track(left, right, points, self._stereo_track, guess)
+        guess[:, 0] -= np.concatenate((seeds, new_seeds))
+        matched = np.empty_like(points)
+        good = np.zeros(len(points), bool)
+        for part, tracking in ((slice(0, len(held)), self._carried_track), (slice(len(held), None), self._stereo_track)):
+            if len(points[part]):
+                matched[part], good[part] = track(left, right, points[part], tracking, guess[part])
         disparity = points[:, 0] - matched[:, 0]
-        good &= (np.abs(points[:, 1] - matched[:, 1]) <= self.params.max_row_error_px) & (
-            disparity >= self.params.min_disparity_px
-        )
+        good &= (np.abs(points[:, 1] - matched[:, 1]) <= p.max_row_error_px) & (disparity >= p.min_disparity_px)
         points, disparity = points[good], disparity[good].astype(np.float64)
         depth = camera.fx * camera.baseline / disparity
         landmarks = np.column_stack(
@@ -176,32 +225,36 @@ class StereoEstimator:
 
     # -- temporal tracking and pose (step 4)
 
-    def _motion(self, keyframe: _StereoKeyframe, left: np.ndarray, K: np.ndarray) -> Increment:
+    def _motion(
+        self, keyframe: _StereoKeyframe, left: np.ndarray, K: np.ndarray
+    ) -> tuple[Increment, tuple[np.ndarray, np.ndarray] | None]:
         """Track the keyframe's features into ``left`` and solve the pose. The first try seeds
         tracking with the last motion; if that fails, a second try seeds it with the global
         image shift found by phase correlation, which catches sudden turns the pyramid cannot
-        reach (NuBot frame 153: a 23° turn after a dropped frame slides the image ~194 px)."""
+        reach (NuBot frame 153: a 23° turn after a dropped frame slides the image ~194 px).
+        Also returns the inliers' positions in ``left`` and their 3D points in the keyframe's
+        camera (None when no pose was found)."""
         p = self.params
         if len(keyframe.points) < p.min_inliers:
-            return zero_increment(inliers=len(keyframe.points))
+            return zero_increment(inliers=len(keyframe.points)), None
         guess = None
         if p.predict and self._last.transform is not None:
             guess = _project(keyframe.landmarks, self._last.transform @ keyframe.to_last, K)
         result = self._pose(keyframe, left, K, guess)
-        if result.quality < p.retry_below_quality:
+        if result[0].quality < p.retry_below_quality:
             dx, dy = global_shift(keyframe.left, left)
             retry = self._pose(keyframe, left, K, keyframe.points + np.float32([dx, dy]))
-            if retry.quality > result.quality:
-                return retry
+            if retry[0].quality > result[0].quality:
+                result = retry
         return result
 
     def _pose(
         self, keyframe: _StereoKeyframe, left: np.ndarray, K: np.ndarray, guess: np.ndarray | None
-    ) -> Increment:
+    ) -> tuple[Increment, tuple[np.ndarray, np.ndarray] | None]:
         p = self.params
         tracked, good = track(keyframe.left, left, keyframe.points, self._frame_track, guess)
         if good.sum() < p.min_inliers:
-            return zero_increment(inliers=int(good.sum()))
+            return zero_increment(inliers=int(good.sum())), None
         objects = keyframe.landmarks[good]
         images = tracked[good].astype(np.float64)
         try:
@@ -217,9 +270,9 @@ class StereoEstimator:
             )
         except cv2.error as error:
             logger.debug("stereo: PnP failed: %s", error)
-            return zero_increment()
+            return zero_increment(), None
         if not found or inliers is None or len(inliers) < p.min_inliers:
-            return zero_increment(inliers=0 if inliers is None else len(inliers))
+            return zero_increment(inliers=0 if inliers is None else len(inliers)), None
         inliers = inliers.ravel()
         rvec, tvec = cv2.solvePnPRefineLM(objects[inliers], images[inliers], K, None, rvec, tvec)
         projected, _ = cv2.projectPoints(objects[inliers], rvec, tvec, K, None)
@@ -227,7 +280,21 @@ class StereoEstimator:
         rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
         quality = len(inliers) / len(objects) * min(1.0, len(inliers) / p.quality_inliers)
         transform = transform_from_rt(rvec, tvec)
-        return increment_with_transform(transform, quality=quality, inliers=len(inliers), match_cost=rms)
+        increment = increment_with_transform(transform, quality=quality, inliers=len(inliers), match_cost=rms)
+        return increment, (images[inliers].astype(np.float32), objects[inliers])
+
+
+def _bucket_medians(buckets: np.ndarray, values: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """The median of ``values`` in each bucket of ``wanted`` (NaN where a bucket has none)."""
+    order = np.lexsort((values, buckets))
+    buckets, values = buckets[order], values[order]
+    starts = np.flatnonzero(np.r_[True, buckets[1:] != buckets[:-1]])
+    counts = np.diff(np.r_[starts, len(buckets)])
+    middle = starts + (counts - 1) // 2
+    position = np.searchsorted(buckets[starts], wanted)
+    position = np.minimum(position, len(starts) - 1)
+    found = buckets[starts][position] == wanted
+    return np.where(found, (values[middle] + values[starts + counts // 2])[position] / 2, np.nan)
 
 
 def _project(points: np.ndarray, transform: np.ndarray, K: np.ndarray) -> np.ndarray:
