@@ -88,9 +88,15 @@ class Recorder:
         """Names of the services of this robot whose health token is alive."""
         return {service for _, service, _ in health.live_services(self.session, self.runtime.robot)}
 
+    def live_instances(self) -> set[str]:
+        """Instance names of the services of this robot whose health token is alive."""
+        return {instance for _, _, instance in health.live_services(self.session, self.runtime.robot)}
+
     def statuses(self) -> dict[str, dict]:
-        """The status counters of every live service of this robot, by service name."""
-        return {status.service: status.model_dump(exclude={"header", "schema_version"})
+        """The status counters of every live service of this robot, by service name (by instance
+        name for a second instance of a service, e.g. egomotion-2)."""
+        return {status.service if status.instance == status.service else status.instance:
+                status.model_dump(exclude={"header", "schema_version"})
                 for status in health.statuses(self.session, self.runtime.robot, timeout=3)}
 
     def map_snapshot(self):
