@@ -138,6 +138,7 @@ class Service:
         self._link_back = False           # ... and one opened again since
         self._recovering_until: float | None = None   # frames after a gap wait until then
         self._gap_events = 0
+        self._busy_s = 0.0   # CPU time of this thread in handlers and on_idle: the service's own work
 
     # ----------------------------------------------------------------- for subclasses
     def setup(self) -> None:
@@ -290,11 +291,14 @@ class Service:
         )
 
     def extra_counters(self) -> dict[str, float]:
-        """Service-specific counters for the status message (override to add some)."""
+        """Service-specific counters for the status message (override to add some). Always there:
+        `cpu_s`, the process's CPU time so far (every thread, start-up included), and `busy_cpu_s`,
+        the main thread's CPU time in handlers and on_idle (the work per frame, docs/pipeline.md)."""
         c = self.counters
         counters = {"replayed": c.replayed, "rejected": c.rejected, "handler_errors": c.handler_errors,
                     "dropped_newest_only": c.dropped_newest_only, "dropped_busy": c.dropped_busy}
-        return {name: value for name, value in counters.items() if value}
+        return {**{name: value for name, value in counters.items() if value},
+                "cpu_s": round(time.process_time(), 3), "busy_cpu_s": round(self._busy_s, 3)}
 
     def _on_transport_event(self, event) -> None:   # a Zenoh thread
         if event.transport.whatami != zenoh.WhatAmI.ROUTER:
@@ -339,7 +343,9 @@ class Service:
         try:
             index, item = self._inbox.get(timeout=self.idle_timeout) if self.idle_timeout > 0 else self._inbox.get_nowait()
         except queue.Empty:
+            started = time.thread_time()
             self.on_idle()
+            self._busy_s += time.thread_time() - started
             return
         subscription = self._subscriptions[index]
         if item is None:   # newest_only: take the latest sample
@@ -451,6 +457,7 @@ class Service:
                                 seq, key, self.counters.gaps)
             self.last_seq = max(self.last_seq, seq)
         self._current_seq = seq
+        started = time.thread_time()
         try:
             handler(message)
         except (PersistenceError, OSError):
@@ -471,6 +478,7 @@ class Service:
                 log.exception("%s: failed on seq %d on %s (%d so far)", self.name, seq, key, self.counters.handler_errors)
         finally:
             self._current_seq = None
+            self._busy_s += time.thread_time() - started
 
     def _put(self, entry: tuple[int, tuple[str, bytes, str] | None]) -> None:
         if self.observer:
