@@ -258,6 +258,8 @@ class Service:
                 self._publish_status_if_due()
             self.state = "stopping"
             self.teardown()
+            # The counters as they end (a source that finished is gone before anyone asks for them).
+            self._send(f"status/{self.name}/{self.instance}", self.status())
             return 0
         finally:
             self._close()

@@ -176,3 +176,20 @@ class BlockEstimation:
         except Exception as error:   # noqa: BLE001 - the same frame raises the same way on every instance
             log.debug("frame %d skipped while running block %d again: %s", seq, run.index, error)
             return 0.0
+
+
+class BlockEstimator:
+    """An Estimator (frames in, one increment each) that runs estimators block by block, as the
+    egomotion service does: offline, the increments a pipeline publishes with any number of
+    instances (`gridslam odometry --shard-block N`). Frames come in seq order."""
+
+    def __init__(self, make: Callable[[Any], Estimator], block: int, name: str, params: Any):
+        self.name = name
+        self.params = params
+        self.block = block
+        self.history = FrameHistory(max(2 * block, 16))
+        self.blocks = BlockEstimation(make, block)
+
+    def estimate(self, frame: Any) -> Increment:
+        self.history.add(frame.seq, frame)
+        return self.blocks.estimate(frame.seq, self.history).increment

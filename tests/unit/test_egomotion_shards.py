@@ -6,7 +6,7 @@ import math
 import pytest
 
 from services.egomotion import EgomotionError, load_estimator_config, make_estimator
-from services.egomotion.shards import BlockEstimation, FrameHistory, block_owner
+from services.egomotion.shards import BlockEstimation, BlockEstimator, FrameHistory, block_owner
 from services.source.spec import open_source
 
 # Frames 140–171 hold NuBot's hard spot: frame 152 repeats 151's left image with a new right one
@@ -73,6 +73,10 @@ def test_scanline_in_blocks_is_the_plain_estimator(frames, params):
     got = [estimation.estimate(frame.seq, history) for frame in frames]
     assert [e.previous_seq for e in got] == [None] + [frame.seq for frame in frames[:-1]]
     assert [(g.increment.forward, g.increment.yaw) for g in got] == [(e.forward, e.yaw) for e in expected]
+    # The same offline (`gridslam odometry --shard-block 3`).
+    offline = BlockEstimator(lambda frame: make_estimator("scanline", frame.camera, params["scanline"]), 3, "scanline",
+                             plain.params)
+    assert [offline.estimate(frame).yaw for frame in frames] == [e.yaw for e in expected]
 
 
 def test_a_block_whose_first_increment_fails_is_primed_with_one_more_frame(frames, params):
