@@ -30,7 +30,7 @@ from services.common.service import Service
 from services.common.errors import ConfigError
 from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator
 from services.egomotion.base import params_from_dict
-from services.egomotion.shards import BLOCK as SHARD_BLOCK, BlockEstimation, FrameHistory, block_owner
+from services.egomotion.shards import BLOCK as SHARD_BLOCK, BlockEstimation, FrameHistory, block_owner, default_block
 from services.source.frames import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -57,11 +57,11 @@ class EgomotionService(Service):
     name = "egomotion"
 
     def __init__(self, runtime: RuntimeConfig, estimator_name: str, params: dict, instance: str | None = None,
-                 shard_block: int = SHARD_BLOCK):
+                 shard_block: int | None = None):
         super().__init__(runtime, instance)
         self.estimator_name = estimator_name
         self.params = params
-        self.shard_block = shard_block
+        self.shard_block = shard_block = shard_block or default_block(ESTIMATORS[estimator_name][0])
         self.noise = params_from_dict(ESTIMATORS[estimator_name][1], params, where=f"{estimator_name} parameters")
         self.history = FrameHistory(max(HISTORY_FRAMES, 4 * shard_block))
         # The estimator is built with each block's calibration, which comes with the frames.
@@ -146,8 +146,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ego-motion estimator (default: the preset's, else scanline)")
     parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic, campus, "
                                          "or a preset file")
-    parser.add_argument("--shard-block", type=int, help=f"frames per block of the shared estimation (default {SHARD_BLOCK}; "
-                                                        "every instance of a robot must use the same)")
+    parser.add_argument("--shard-block", type=int, help=f"frames per block of the shared estimation (default {SHARD_BLOCK}, "
+                                                        "mono 16; every instance of a robot must use the same)")
 
 
 def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
@@ -167,10 +167,11 @@ def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
     return name, params[name]
 
 
-def shard_block_setting(args: argparse.Namespace) -> int:
-    """Frames per block: the --config file's [egomotion] shard_block < GRIDSLAM_EGOMOTION_SHARD_BLOCK < --shard-block."""
+def shard_block_setting(args: argparse.Namespace, estimator_name: str) -> int:
+    """Frames per block: the estimator's default (shards.default_block) < the --config file's
+    [egomotion] shard_block < GRIDSLAM_EGOMOTION_SHARD_BLOCK < --shard-block."""
     table = read_toml(args.config).get("egomotion", {}) if args.config else {}
-    value, where = SHARD_BLOCK, "shard_block"
+    value, where = default_block(ESTIMATORS[estimator_name][0]), "shard_block"
     for name, given in ((f"{args.config}: [egomotion] shard_block", table.get("shard_block")),
                         ("GRIDSLAM_EGOMOTION_SHARD_BLOCK", os.environ.get("GRIDSLAM_EGOMOTION_SHARD_BLOCK")),
                         ("--shard-block", args.shard_block)):
@@ -185,4 +186,4 @@ def shard_block_setting(args: argparse.Namespace) -> int:
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     name, params = estimator_settings(args)
-    return EgomotionService(runtime, name, params, args.instance, shard_block_setting(args)).run()
+    return EgomotionService(runtime, name, params, args.instance, shard_block_setting(args, name)).run()

@@ -39,6 +39,11 @@ WARMUP = 1    # frames a block is primed with
 RETRIES = 1   # more frames tried when the block's first increment fails
 
 
+def default_block(estimator_class: type) -> int:
+    """Frames per block for an estimator: its own `shard_block` (mono's is longer), else BLOCK."""
+    return int(getattr(estimator_class, "shard_block", BLOCK))
+
+
 def block_owner(seq: int, block: int, members: Mapping[str, float]) -> str | None:
     """The instance whose share holds frame `seq`, given every member's `since` (None: no member)."""
     if not members:

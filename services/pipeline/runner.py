@@ -32,7 +32,8 @@ from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
-from services.egomotion.shards import BLOCK as SHARD_BLOCK
+from services.egomotion import ESTIMATORS
+from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.source.service import SourceConfig
 from services.source.spec import bag_settings, open_source
 
@@ -263,7 +264,7 @@ def source_window(config: RunConfig) -> int:
     each to have SHARDED_WINDOW_BLOCKS blocks of frames."""
     if config.egomotion_instances == 1:
         return config.window
-    block = SHARD_BLOCK
+    block = default_block(ESTIMATORS[config.egomotion][0]) if config.egomotion else SHARD_BLOCK
     if config.config_file is not None:
         block = read_toml(config.config_file).get("egomotion", {}).get("shard_block", block)
     return max(config.window, SHARDED_WINDOW_BLOCKS * config.egomotion_instances * int(block))
