@@ -42,9 +42,9 @@ log = logging.getLogger(__name__)
 STARTUP_TIMEOUT_S = 120.0   # services settle networks and load models before their token appears
 STOP_TIMEOUT_S = 5.0
 RESEND_AFTER_S = 2.0        # a stage restarted by the runner is back within this; then frames in flight go again
-# With several egomotion instances, the source keeps at least this many blocks of frames in flight
-# per instance, so that each has its next block while it works on one (docs/pipeline.md).
-SHARDED_WINDOW_BLOCKS = 2
+# With N egomotion instances the source keeps at least N + SHARDED_SPARE_BLOCKS blocks of frames
+# in flight: one for each instance to work on, and the next one already sent (docs/pipeline.md).
+SHARDED_SPARE_BLOCKS = 1
 # A child that exits this many times in a row with no frame completed in between fails for a
 # reason a restart does not cure (a full disk, a bad file): the run stops and quotes it.
 RESTARTS_WITHOUT_PROGRESS = 3
@@ -88,7 +88,7 @@ class RunConfig(BaseModel):
     window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
     egomotion_instances: int = Field(
         1, ge=1, le=16, description="Ego-motion instances sharing the frames (docs/pipeline.md, sharded ego-motion); with "
-                                    "more than one, at least SHARDED_WINDOW_BLOCKS blocks per instance are kept in flight.")
+                                    "more than one, at least N + 1 blocks of frames are kept in flight.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
     closure: Literal["metric", "ratslam"] | None = Field(
         None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
@@ -261,13 +261,13 @@ def egomotion_children(config: RunConfig) -> list[str]:
 
 def source_window(config: RunConfig) -> int:
     """Frames in flight: the configured window, and with several egomotion instances enough for
-    each to have SHARDED_WINDOW_BLOCKS blocks of frames."""
+    each to have a block of frames and the next already sent."""
     if config.egomotion_instances == 1:
         return config.window
     block = default_block(ESTIMATORS[config.egomotion][0]) if config.egomotion else SHARD_BLOCK
     if config.config_file is not None:
         block = read_toml(config.config_file).get("egomotion", {}).get("shard_block", block)
-    return max(config.window, SHARDED_WINDOW_BLOCKS * config.egomotion_instances * int(block))
+    return max(config.window, (config.egomotion_instances + SHARDED_SPARE_BLOCKS) * int(block))
 
 
 def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
