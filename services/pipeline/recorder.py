@@ -87,10 +87,6 @@ class Recorder:
             seqs = self.recording.arrivals[topic]
             return max(seqs) if seqs else None
 
-    def live_services(self) -> set[str]:
-        """Names of the services of this robot whose health token is alive."""
-        return {service for _, service, _ in health.live_services(self.session, self.runtime.robot)}
-
     def live_instances(self) -> set[str]:
         """Instance names of the services of this robot whose health token is alive."""
         return {instance for _, _, instance in health.live_services(self.session, self.runtime.robot)}

@@ -26,14 +26,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
+from services.egomotion import ESTIMATORS
+from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
-from services.egomotion import ESTIMATORS
-from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.source.service import SourceConfig
 from services.source.spec import bag_settings, open_source
 
