@@ -104,7 +104,8 @@ def run_flags(args) -> dict:
     strides = [value for value in steps if isinstance(value, int)]
     sources = [value for value in steps if isinstance(value, str)]
     return {"source": args.source, "egomotion": args.egomotion, "egomotion_instances": args.egomotion_instances,
-            "integrator": args.integrator, "decoder": args.decoder, "step_source": sources[-1] if sources else None, "modules": args.modules, "heading": args.heading,
+            "integrator": args.integrator, "decoder": args.decoder, "step_source": sources[-1] if sources else None,
+            "modules": args.modules, "heading": args.heading,
             "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames,
             "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
             "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,

@@ -11,8 +11,8 @@ seqs k·block … (k+1)·block − 1) and a fresh estimator runs through each bl
 increment fails (quality 0: a frame whose stereo matching failed, say) the block is run again
 primed with one more frame, up to `warmup + retries` frames. Scanline and passthrough keep only
 the previous frame, so for them this is exactly the unsharded estimator; for stereo and mono a
-block start drops the motion prediction (docs/pipeline.md has the measured effect: none beyond
-noise). One instance alone runs the same blocks, so any number of instances agree with it.
+block start drops that state (docs/pipeline.md has the measured effect; mono's blocks are longer,
+`default_block`). One instance alone runs the same blocks, so any number of instances agree with it.
 
 Shares. Every instance announces `since`: the first seq from which it can run a block exactly
 (it has held every frame from `warmup + retries` frames before it). Block k goes to the
