@@ -71,10 +71,18 @@ def test_an_instance_added_and_one_killed_mid_run(shared_data, one_instance, tmp
     added = session = None
     try:
         wait_for(lambda: frames_in_map(tmp_path) >= 15 or run.poll() is not None, timeout=120)
-        assert run.poll() is None, "the run ended before an instance could be added"
-        added = start(["service", "egomotion", "-e", endpoint(port), "--instance", "added", "--preset", "nubot",
-                       "--estimator", "stereo"])
-        session = client_session(port)
+        source = service_pid(port, "source")
+        assert source is not None and run.poll() is None, "the run ended before an instance could be added"
+        # The source pauses while the new instance starts (a second or two), so that the run is
+        # still going when it has joined, however busy the machine.
+        os.kill(source, signal.SIGSTOP)
+        try:
+            added = start(["service", "egomotion", "-e", endpoint(port), "--instance", "added", "--preset", "nubot",
+                           "--estimator", "stereo"])
+            session = client_session(port)
+            wait_for(lambda: ("robot0", "egomotion", "added") in live_services(session, timeout=0.5), timeout=60)
+        finally:
+            os.kill(source, signal.SIGCONT)
         wait_for(lambda: estimated_by(session, "added") > 0 or run.poll() is not None, timeout=120)
         pid = service_pid(port, "egomotion-2")
         assert pid is not None and run.poll() is None, "egomotion-2 is not running"
