@@ -38,6 +38,11 @@ class EgoMotion(Message):
     """`egomotion`: the camera's motion since the previous frame, in the body frame."""
 
     header: Header = Field(description="Index and timestamp of the frame that ends this increment.")
+    previous_seq: int | None = Field(
+        None, ge=0,
+        description="Index of the frame the increment starts from (the one before it in the estimator's run); absent "
+                    "for a run's first frame. Several egomotion instances publish out of order: a consumer puts the "
+                    "increments back in order by this link (docs/pipeline.md, sharded ego-motion).")
     increment: PlanarIncrement = Field(description="Planar body-frame motion over the frame: forward, left (m), yaw (rad).")
     transform: list[float] | None = Field(
         None, min_length=16, max_length=16,

@@ -12,6 +12,7 @@ BENCHMARKS: dict[str, str] = {
     "egomotion": "services.egomotion.bench",
     "viewer": "services.viewer.bench",
     "pipeline": "services.pipeline.bench",
+    "sharding": "services.pipeline.shard_bench",
     "load": "services.pipeline.load",
     "loopclosure": "services.loopclosure.bench",
     "mapping": "services.expmap.bench",

@@ -4,12 +4,23 @@ metrics and plots, and print a Metric | Value | Unit table (docs/egomotion.md)."
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from services.egomotion import ESTIMATORS
 from services.egomotion.offline import run_offline, summary_rows
 from services.evaluation.results import format_table
 from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
+
+
+def positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number of frames >= 1, got {text!r}")
+    return value
 
 
 def register(subparsers) -> None:
@@ -33,6 +44,9 @@ def register(subparsers) -> None:
     parser.add_argument("--reference", type=Path, metavar="FILE",
                         help="reference to score against, row k = frame k: TUM, KITTI poses, or a CSV of increments "
                         "(forward,left,yaw or LIBVISO2's table)")
+    parser.add_argument("--shard-block", type=positive, metavar="N",
+                        help="run the estimator in blocks of N frames as the egomotion service does (the increments of "
+                             "a pipeline run, whatever its number of egomotion instances; docs/pipeline.md)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
     add_world_arguments(parser)
     add_bag_arguments(parser)
@@ -54,6 +68,7 @@ def run(args) -> int:
         out=args.out,
         world=parse_world_flags(args.world, args.laps),
         topics=bag_settings(args),
+        shard_block=args.shard_block,
     )
     print(format_table(summary_rows(result)))
     print(f"results: {folder}")

@@ -17,6 +17,8 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--source", required=source_required,
                         help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
+    parser.add_argument("--egomotion-instances", type=int, metavar="N",
+                        help="ego-motion processes sharing the frames (default 1; docs/pipeline.md)")
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
     parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default subpixel)")
     parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
@@ -101,8 +103,9 @@ def run_flags(args) -> dict:
     steps = args.step or []
     strides = [value for value in steps if isinstance(value, int)]
     sources = [value for value in steps if isinstance(value, str)]
-    return {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
-            "step_source": sources[-1] if sources else None, "modules": args.modules, "heading": args.heading,
+    return {"source": args.source, "egomotion": args.egomotion, "egomotion_instances": args.egomotion_instances,
+            "integrator": args.integrator, "decoder": args.decoder, "step_source": sources[-1] if sources else None,
+            "modules": args.modules, "heading": args.heading,
             "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames,
             "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
             "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,

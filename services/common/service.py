@@ -28,7 +28,7 @@ import zenoh
 from schemas import Header, ServiceStatus, Time
 from schemas.base import Message
 from services.common import codec, topics
-from services.common.errors import GridslamError, PersistenceError
+from services.common.errors import ConfigError, GridslamError, PersistenceError
 from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
 
 log = logging.getLogger(__name__)
@@ -43,6 +43,11 @@ LOG_EVERY = 1000         # after the first 10, one log line per this many decode
 # ends the wait.
 RECOVERY_S = 5.0
 MAX_HELD = 256           # frames waiting per subscription, beyond which the wait ends early
+# A message that names the one it follows (EgoMotion.previous_seq: several egomotion instances
+# publish out of order) waits for it this long; longer than the source takes to send a lost frame
+# again (resend_after) after an instance that died has left the network (its lease).
+ORDER_WAIT_S = 20.0
+ORDER_WAIT_FIRST_S = 2.0   # ... before the first message was handled (a service started mid-run)
 
 
 @dataclass
@@ -87,7 +92,10 @@ class Subscription:
     seq: SeqTracker = field(default_factory=SeqTracker)
     pending: tuple[str, bytes, str] | None = None   # newest_only: the one sample kept
     lock: threading.Lock = field(default_factory=threading.Lock)
-    held: dict[int, tuple[str, Message]] = field(default_factory=dict)   # after a reconnection: seq → (key, message)
+    held: dict[int, tuple[str, Message]] = field(default_factory=dict)   # waiting: seq → (key, message)
+    follows: Callable[[Message], int | None] | None = None   # the seq a message comes after (None: none)
+    on_stale: Callable[[Message], None] | None = None       # called for a stale message instead of the replay
+    held_since: float | None = None                          # when the wait for a `follows` link began
 
     @property
     def ordered(self) -> bool:
@@ -104,6 +112,9 @@ class Service:
     # blocks Zenoh's delivery on a full inbox, an observer drops the sample and counts it.
     observer: ClassVar[bool] = False
     inbox_size: ClassVar[int] = INBOX_SIZE
+    # A stage whose state runs across every frame (gridcells, loopclosure, expmap) cannot be
+    # shared by two instances: a second one for the same robot refuses to start.
+    exclusive: ClassVar[bool] = False
 
     def __init__(self, runtime: RuntimeConfig, instance: str | None = None):
         self.runtime = runtime
@@ -127,6 +138,7 @@ class Service:
         self._link_back = False           # ... and one opened again since
         self._recovering_until: float | None = None   # frames after a gap wait until then
         self._gap_events = 0
+        self._busy_s = 0.0   # CPU time of this thread in handlers and on_idle: the service's own work
 
     # ----------------------------------------------------------------- for subclasses
     def setup(self) -> None:
@@ -139,16 +151,27 @@ class Service:
         """Flush state before the session closes."""
 
     def subscribe(self, topic: str, handler: Callable[[Message], None], *, newest_only: bool = False,
-                  drop_stale: bool = True, sparse: bool = False) -> None:
+                  drop_stale: bool = True, sparse: bool = False, follows: Callable[[Message], int | None] | None = None,
+                  on_stale: Callable[[Message], None] | None = None, handled_up_to: int | None = None) -> None:
         """Call `handler(message)` on the main thread for every valid message on `topic`.
 
         `newest_only` keeps just the latest unhandled sample (a live camera: old frames are
         dropped by design and counted); otherwise every sample is handled, in order, and a full
         inbox blocks Zenoh's delivery, which pushes back on BLOCK publishers. `sparse` topics skip
         frames by design (map/update, loop/closure, grid/activity): no gap is counted on them,
-        nor on newest-only subscriptions."""
+        nor on newest-only subscriptions.
+
+        `follows(message)` names the seq a message comes after (EgoMotion.previous_seq): a
+        message whose predecessor has not been handled yet waits for it (up to ORDER_WAIT_S),
+        so messages published out of order by several instances are handled in order.
+        `on_stale(message)` is called for a stale message (a frame sent again) instead of
+        publishing this service's earlier outputs for it again (`replay_outputs`). `handled_up_to`:
+        the last seq a previous process of this service handled (it resumed from a checkpoint):
+        messages up to it are stale."""
         assert self.session is not None, "subscribe() belongs in setup()"
-        subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale, sparse or newest_only)
+        subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale, sparse or newest_only,
+                                    follows=follows, on_stale=on_stale)
+        subscription.seq.last = handled_up_to
         index = len(self._subscriptions)
         self._subscriptions.append(subscription)
 
@@ -220,6 +243,8 @@ class Service:
                 self.session = open_session(self.runtime, self._stop)
             except ServiceStopped:
                 return 0
+            if self.exclusive:
+                self._refuse_if_running()
             self.setup()
             self._entities.append(self.session.liveliness().declare_token(
                 topics.health_key(self.robot, self.name, self.instance)))
@@ -233,10 +258,31 @@ class Service:
                 self._publish_status_if_due()
             self.state = "stopping"
             self.teardown()
+            # The counters as they end (a source that finished is gone before anyone asks for them).
+            self._send(f"status/{self.name}/{self.instance}", self.status())
             return 0
         finally:
             self._close()
             self._restore_signal_handlers(previous)
+
+    def _refuse_if_running(self) -> None:
+        """Exit (ConfigError: one line) when another instance of this service serves the same robot."""
+        others = set()
+        for reply in self.session.liveliness().get(topics.health_key(self.robot, self.name, "*"), timeout=2.0):
+            if reply.ok is not None:
+                others.add(topics.parse_health_key(str(reply.ok.key_expr))[2])
+        others.discard(self.instance)   # our own earlier process (a restart under the same name) is gone
+        if others:
+            raise ConfigError(f"{self.name} of robot {self.robot} is already running (instance {sorted(others)[0]}); "
+                              f"it keeps state across frames, so one instance serves a robot (docs/pipeline.md)")
+
+    def replay_outputs(self, seq: int) -> int:
+        """Publish again what the handler published for frame `seq`, if still remembered; how many."""
+        outputs = self._outputs.get(seq, ())
+        for topic, output in outputs:
+            self._send(topic, output)
+        self.counters.replayed += len(outputs)
+        return len(outputs)
 
     def status(self) -> ServiceStatus:
         c = self.counters
@@ -247,11 +293,14 @@ class Service:
         )
 
     def extra_counters(self) -> dict[str, float]:
-        """Service-specific counters for the status message (override to add some)."""
+        """Service-specific counters for the status message (override to add some). Always there:
+        `cpu_s`, the process's CPU time so far (every thread, start-up included), and `busy_cpu_s`,
+        the main thread's CPU time in handlers and on_idle (the work per frame, docs/pipeline.md)."""
         c = self.counters
         counters = {"replayed": c.replayed, "rejected": c.rejected, "handler_errors": c.handler_errors,
                     "dropped_newest_only": c.dropped_newest_only, "dropped_busy": c.dropped_busy}
-        return {name: value for name, value in counters.items() if value}
+        return {**{name: value for name, value in counters.items() if value},
+                "cpu_s": round(time.process_time(), 3), "busy_cpu_s": round(self._busy_s, 3)}
 
     def _on_transport_event(self, event) -> None:   # a Zenoh thread
         if event.transport.whatami != zenoh.WhatAmI.ROUTER:
@@ -292,10 +341,13 @@ class Service:
             self._recovering_until = time.monotonic() + RECOVERY_S
         if self._recovering_until is not None and time.monotonic() > self._recovering_until:
             self._end_recovery()
+        self._end_overdue_waits()
         try:
             index, item = self._inbox.get(timeout=self.idle_timeout) if self.idle_timeout > 0 else self._inbox.get_nowait()
         except queue.Empty:
+            started = time.thread_time()
             self.on_idle()
+            self._busy_s += time.thread_time() - started
             return
         subscription = self._subscriptions[index]
         if item is None:   # newest_only: take the latest sample
@@ -314,7 +366,10 @@ class Service:
         self.counters.received += 1
         seq = message.header.seq
         last = subscription.seq.last
-        if self._recovering_until is not None and subscription.ordered and last is not None and seq > last + 1:
+        if subscription.follows is not None:
+            if self._wait_for_previous(subscription, key, message):
+                return
+        elif self._recovering_until is not None and subscription.ordered and last is not None and seq > last + 1:
             # Frames lost with the router come again after this one: it waits for them.
             if not subscription.held:
                 log.warning("%s: seq %d follows %d on %s after a reconnection; waiting up to %.0f s for the frames between",
@@ -329,13 +384,54 @@ class Service:
         self._deliver(subscription, key, message)
         self._release(subscription)
 
+    def _wait_for_previous(self, subscription: Subscription, key: str, message: Message) -> bool:
+        """Hold `message` when the one it follows has not been handled yet; whether it was held."""
+        seq, last = message.header.seq, subscription.seq.last
+        if self._follows_on(subscription, message) or (last is not None and seq <= last):
+            return False
+        if seq in subscription.held:
+            self.counters.stale += 1   # it came twice while waiting: once is enough
+            return True
+        if not subscription.held:
+            subscription.held_since = time.monotonic()
+        subscription.held[seq] = (key, message)
+        if len(subscription.held) > MAX_HELD:
+            self._stop_waiting(subscription, f"more than {MAX_HELD} messages wait")
+        return True
+
+    @staticmethod
+    def _follows_on(subscription: Subscription, message: Message) -> bool:
+        """Whether `message` may be handled now: the frame it comes after has been."""
+        last = subscription.seq.last
+        if subscription.follows is None:
+            return last is None or message.header.seq <= last + 1
+        previous = subscription.follows(message)
+        return previous is None or (last is not None and previous <= last)
+
+    def _end_overdue_waits(self) -> None:
+        now = time.monotonic()
+        for subscription in self._subscriptions:
+            if subscription.held_since is None:
+                continue
+            limit = ORDER_WAIT_S if subscription.seq.last is not None else ORDER_WAIT_FIRST_S
+            if now - subscription.held_since > limit:
+                self._stop_waiting(subscription, f"waited {limit:.0f} s")
+
+    def _stop_waiting(self, subscription: Subscription, reason: str) -> None:
+        seq, _ = min(subscription.held.items())
+        previous = subscription.follows(subscription.held[seq][1])
+        log.warning("%s: %s on %s for seq %s, which seq %d follows; handling the %d held message(s) with a gap",
+                    self.name, reason, subscription.topic, previous, seq, len(subscription.held))
+        self._release(subscription, everything=True)
+
     def _release(self, subscription: Subscription, everything: bool = False) -> None:
         """Handle the held frames that now follow on (all of them, in order, when `everything`)."""
         while subscription.held:
             seq = min(subscription.held)
-            if not everything and seq > subscription.seq.last + 1:
+            if not everything and not self._follows_on(subscription, subscription.held[seq][1]):
                 return
             self._deliver(subscription, *subscription.held.pop(seq))
+        subscription.held_since = None
 
     def _end_recovery(self) -> None:
         self._recovering_until = None
@@ -346,23 +442,26 @@ class Service:
         """Check `seq` (stale: replay the outputs; a gap: count it) and call the handler."""
         seq = message.header.seq
         missing, stale = subscription.seq.check(seq)
+        handler = subscription.handler
         if stale and subscription.drop_stale:
             self.counters.stale += 1
-            for topic, output in self._outputs.get(seq, ()):
-                self._send(topic, output)
-                self.counters.replayed += 1
-            log.debug("%s: stale seq %d on %s (outputs replayed: %d)", self.name, seq, key, len(self._outputs.get(seq, ())))
-            return
-        if missing and not subscription.sparse:
-            self.counters.gaps += missing
-            self._gap_events += 1
-            if self._gap_events <= 10 or self._gap_events % LOG_EVERY == 0:   # a live camera's drops: one a frame
-                log.warning("%s: %d frame(s) missing before seq %d on %s (%d missing so far)", self.name, missing, seq,
-                            key, self.counters.gaps)
-        self.last_seq = max(self.last_seq, seq)
+            if subscription.on_stale is None:
+                replayed = self.replay_outputs(seq)
+                log.debug("%s: stale seq %d on %s (outputs replayed: %d)", self.name, seq, key, replayed)
+                return
+            handler = subscription.on_stale
+        else:
+            if missing and not subscription.sparse:
+                self.counters.gaps += missing
+                self._gap_events += 1
+                if self._gap_events <= 10 or self._gap_events % LOG_EVERY == 0:   # a live camera's drops: one a frame
+                    log.warning("%s: %d frame(s) missing before seq %d on %s (%d missing so far)", self.name, missing,
+                                seq, key, self.counters.gaps)
+            self.last_seq = max(self.last_seq, seq)
         self._current_seq = seq
+        started = time.thread_time()
         try:
-            subscription.handler(message)
+            handler(message)
         except (PersistenceError, OSError):
             raise   # the service cannot keep its state (disk full, say): it stops, and says why
         except GridslamError as error:
@@ -381,6 +480,7 @@ class Service:
                 log.exception("%s: failed on seq %d on %s (%d so far)", self.name, seq, key, self.counters.handler_errors)
         finally:
             self._current_seq = None
+            self._busy_s += time.thread_time() - started
 
     def _put(self, entry: tuple[int, tuple[str, bytes, str] | None]) -> None:
         if self.observer:

@@ -40,6 +40,20 @@ def health_key(robot: str, service: str, instance: str) -> str:
     return f"{PREFIX}/{robot}/health/{service}/{instance}"
 
 
+def shard_key(robot: str, service: str, instance: str, since: int | str) -> str:
+    """Liveliness token of an instance that takes a share of the frames (sharded egomotion):
+    it holds every frame from the one before `since` on (docs/pipeline.md)."""
+    return f"{PREFIX}/{robot}/shard/{service}/{instance}/{since}"
+
+
+def parse_shard_key(key_expr: str) -> tuple[str, str, str, int]:
+    """(robot, service, instance, since) of a shard token's key."""
+    parts = key_expr.split("/")
+    if len(parts) != 7 or "/".join(parts[:2]) != PREFIX or parts[3] != "shard" or not parts[6].isdigit():
+        raise ValueError(f"{key_expr!r} is not a gridslam shard key")
+    return parts[2], parts[4], parts[5], int(parts[6])
+
+
 def status_key(robot: str, service: str, instance: str) -> str:
     """Status topic and queryable of one running service instance."""
     return f"{PREFIX}/{robot}/status/{service}/{instance}"

@@ -92,6 +92,10 @@ class MonoEstimator:
     """Monocular feature odometry; state is the previous image and its corners."""
 
     name = "mono"
+    # Frames per block when the egomotion service runs it in blocks (services/egomotion/shards.py):
+    # a block start restarts the median of recent ground scales (scale_window), so mono's blocks
+    # are longer than the default 4 (docs/pipeline.md: per-frame error on the KITTI clip).
+    shard_block = 16
 
     def __init__(self, params: MonoParams, camera: Any) -> None:
         self.params = params

@@ -147,11 +147,14 @@ def run_offline(
     results_root: Path = Path("results"),
     world: dict | None = None,
     topics: dict | None = None,
+    shard_block: int | None = None,
 ) -> tuple[OdometryResult, Path]:
     """Open the source ``spec``, build the estimator from the preset and config file, run
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
     ``latest`` link). Returns the result and the folder. What `gridslam odometry` runs.
-    ``world``: synthetic world settings over the preset's."""
+    ``world``: synthetic world settings over the preset's. ``shard_block``: run the estimator in
+    blocks of that many frames, as the egomotion service does (shards.py), for the increments a
+    pipeline publishes."""
     from services.common.config import is_preset_file, preset_applies
     from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator, preset_names
     from services.evaluation.results import results_dir
@@ -189,6 +192,12 @@ def run_offline(
         topics=topics,   # a ROS bag's topics (source/spec.py)
     )
     estimator_instance = make_estimator(name, getattr(source, "camera", None), all_params[name])
+    if shard_block is not None:
+        from services.egomotion.shards import BlockEstimator
+
+        estimator_instance = BlockEstimator(lambda frame: make_estimator(name, getattr(frame, "camera", None) or source.camera,
+                                                                         all_params[name]),
+                                            shard_block, name, estimator_instance.params)
     reference_trajectory = load_reference(reference) if reference is not None else None
     folder = results_dir(out, root=results_root)
     config = {
@@ -202,6 +211,7 @@ def run_offline(
         "reference": None if reference is None else str(reference),
         "world": world or {},
         **{key: value for key, value in (topics or {}).items() if value is not None},
+        "shard_block": shard_block,
         "camera": None if getattr(source, "camera", None) is None else dataclasses.asdict(source.camera),
         "estimator": estimator_config(estimator_instance),
     }

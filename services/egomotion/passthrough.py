@@ -64,7 +64,6 @@ class PassthroughEstimator:
 
     def __init__(self, params: PassthroughParams, camera: Any = None) -> None:
         self.params = params
-        self._rng = np.random.default_rng(params.seed)
         self._previous_pose: np.ndarray | None = None
         self._first = True
 
@@ -75,7 +74,10 @@ class PassthroughEstimator:
             return zero_increment()
         if not self._noisy():
             return exact
-        noise = self._rng.normal(0.0, [self.params.noise_forward, self.params.noise_left, self.params.noise_yaw])
+        # Drawn from (seed, frame): a frame's noise is the same whichever estimator, restarted or
+        # one of several instances (docs/pipeline.md, sharded ego-motion), draws it.
+        rng = np.random.default_rng([self.params.seed, int(frame.seq)])
+        noise = rng.normal(0.0, [self.params.noise_forward, self.params.noise_left, self.params.noise_yaw])
         forward, left, yaw = exact.forward + noise[0], exact.left + noise[1], exact.yaw + noise[2]
         return Increment(forward, left, yaw, transform_from_increment(forward, left, yaw), 1.0, 1, 0.0)
 

@@ -1,22 +1,41 @@
-"""egomotion: estimate the camera's motion between consecutive frames (scanline, stereo, mono, passthrough)."""
+"""egomotion: estimate the camera's motion between consecutive frames (scanline, stereo, mono, passthrough).
+
+Several instances may share one robot's frames (docs/pipeline.md, "Sharded ego-motion"): each
+receives every frame and keeps the newest ones, estimates the frames of its share
+(services/egomotion/shards.py: blocks of `shard_block` seqs, each run by a fresh estimator primed
+with the frames before it, so that every instance computes the same increments), and says which
+frame each increment starts from (EgoMotion.previous_seq): gridcells puts them back in order. An
+instance joins the shares with a liveliness token `gridslam/@v1/<robot>/shard/egomotion/<instance>/<since>`
+once it holds the frames it needs; the shares follow the tokens alive. A frame sent again (the
+source re-sends the frames in flight when no acknowledgement comes: an instance died or joined)
+is estimated by the instance whose share holds it now, or its earlier increment is published again.
+"""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
+import threading
+
+import zenoh
 
 from schemas import CameraFrame, EgoMotion, PlanarIncrement
+from services.common import topics
 from services.common.config import read_toml
 from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.errors import ConfigError
 from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator
-from services.egomotion.base import Estimator, params_from_dict
+from services.egomotion.base import params_from_dict
+from services.egomotion.shards import BLOCK as SHARD_BLOCK, BlockEstimation, FrameHistory, block_owner, default_block
 from services.source.frames import Camera, Frame
 
 log = logging.getLogger(__name__)
+
+HISTORY_FRAMES = 64    # frames kept: more than the source keeps in flight plus a block and its primers
 
 
 def frame_from_message(message: CameraFrame) -> Frame:
@@ -37,25 +56,79 @@ def frame_from_message(message: CameraFrame) -> Frame:
 class EgomotionService(Service):
     name = "egomotion"
 
-    def __init__(self, runtime: RuntimeConfig, estimator_name: str, params: dict, instance: str | None = None):
+    def __init__(self, runtime: RuntimeConfig, estimator_name: str, params: dict, instance: str | None = None,
+                 shard_block: int | None = None):
         super().__init__(runtime, instance)
         self.estimator_name = estimator_name
         self.params = params
-        self.estimator: Estimator | None = None   # built on the first frame, which brings the calibration
+        self.shard_block = shard_block = shard_block or default_block(ESTIMATORS[estimator_name][0])
+        self.noise = params_from_dict(ESTIMATORS[estimator_name][1], params, where=f"{estimator_name} parameters")
+        self.history = FrameHistory(max(HISTORY_FRAMES, 4 * shard_block))
+        # The estimator is built with each block's calibration, which comes with the frames.
+        self.blocks = BlockEstimation(lambda frame: make_estimator(estimator_name, frame.camera, params), shard_block,
+                                      frame_of=frame_from_message)
+        self.estimated = 0
+        self._members: dict[str, tuple[str, int]] = {}   # shard token key → (instance, since); Zenoh threads write it
+        self._members_lock = threading.Lock()
+        self._token = None
 
     def setup(self) -> None:
-        self.subscribe("camera/frame", self.on_frame)
+        self.subscribe("camera/frame", self.on_frame, on_stale=self.on_frame_again)
+        self._entities.append(self.session.liveliness().declare_subscriber(
+            topics.shard_key(self.robot, self.name, "*", "*"), self._on_member, history=True))
+
+    def _on_member(self, sample: zenoh.Sample) -> None:   # a Zenoh thread
+        key = str(sample.key_expr)
+        try:
+            _, _, instance, since = topics.parse_shard_key(key)
+        except ValueError:
+            return
+        with self._members_lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._members.pop(key, None)
+            else:
+                self._members[key] = (instance, since)
+
+    def members(self) -> dict[str, float]:
+        """Every instance sharing the frames → its `since` (this one's: infinite until it holds enough frames)."""
+        with self._members_lock:
+            tokens = list(self._members.values())
+        members: dict[str, float] = {}
+        for instance, since in tokens:
+            members[instance] = min(since, members.get(instance, math.inf))
+        members[self.instance] = math.inf if self.history.since is None else self.history.since
+        return members
 
     def on_frame(self, message: CameraFrame) -> None:
-        frame = frame_from_message(message)
+        seq = message.header.seq
+        self.history.add(seq, message)
+        if self._token is None and self.history.since is not None:
+            self._token = self.session.liveliness().declare_token(
+                topics.shard_key(self.robot, self.name, self.instance, self.history.since))
+            self._entities.append(self._token)
+            log.info("egomotion/%s takes a share of the frames from seq %d (blocks of %d)", self.instance,
+                     self.history.since, self.shard_block)
+        if block_owner(seq, self.shard_block, self.members()) == self.instance:
+            self.estimate(message)
+
+    def on_frame_again(self, message: CameraFrame) -> None:
+        """A frame sent again: its increment again if this instance published one, else (its share
+        changed since) estimated now when it is this instance's."""
+        seq = message.header.seq
+        if self.replay_outputs(seq):
+            return
+        if self.history.add(seq, message) and block_owner(seq, self.shard_block, self.members()) == self.instance:
+            self.estimate(message)
+
+    def estimate(self, message: CameraFrame) -> None:
         # A frame this estimator cannot use (stereo given a mono frame: EgomotionError) is
-        # counted and dropped by the base class; the gap shows downstream through seq.
-        if self.estimator is None:
-            self.estimator = make_estimator(self.estimator_name, frame.camera, self.params)
-        increment = self.estimator.estimate(frame)
-        covariance = self.estimator.params.covariance(increment)
+        # counted and dropped by the base class; the next increment starts from the frame before.
+        estimate = self.blocks.estimate(message.header.seq, self.history)
+        increment = estimate.increment
+        covariance = self.noise.covariance(increment)
+        self.estimated += 1
         self.publish("egomotion", EgoMotion(
-            header=message.header.model_copy(update={"frame_id": "base_link"}),
+            header=message.header.model_copy(update={"frame_id": "base_link"}), previous_seq=estimate.previous_seq,
             increment=PlanarIncrement(forward=increment.forward, left=increment.left, yaw=increment.yaw),
             transform=[float(v) for v in increment.transform.ravel()] if increment.transform is not None else None,
             quality=min(max(float(increment.quality), 0.0), 1.0), inliers=int(increment.inliers),
@@ -63,12 +136,18 @@ class EgomotionService(Service):
             covariance=[float(v) for v in covariance.ravel()] if covariance is not None else None,
         ))
 
+    def extra_counters(self) -> dict[str, float]:
+        return {**super().extra_counters(), "estimated": self.estimated, "estimated_again": self.blocks.rebuilt,
+                "shard_members": len(self.members())}
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimator", choices=["scanline", "stereo", "mono", "passthrough"],
                         help="ego-motion estimator (default: the preset's, else scanline)")
     parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic, campus, "
                                          "or a preset file")
+    parser.add_argument("--shard-block", type=int, help=f"frames per block of the shared estimation (default {SHARD_BLOCK}, "
+                                                        "mono 16; every instance of a robot must use the same)")
 
 
 def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
@@ -79,7 +158,7 @@ def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
     for estimator, values in table.items():
         if estimator in ESTIMATORS:
             params[estimator].update(values)
-        elif estimator != "estimator":
+        elif estimator not in ("estimator", "shard_block"):
             raise ConfigError(f"{args.config}: [egomotion] unknown key {estimator!r}")
     name = args.estimator or os.environ.get("GRIDSLAM_EGOMOTION_ESTIMATOR") or table.get("estimator") or default or "scanline"
     if name not in ESTIMATORS:
@@ -88,6 +167,23 @@ def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
     return name, params[name]
 
 
+def shard_block_setting(args: argparse.Namespace, estimator_name: str) -> int:
+    """Frames per block: the estimator's default (shards.default_block) < the --config file's
+    [egomotion] shard_block < GRIDSLAM_EGOMOTION_SHARD_BLOCK < --shard-block."""
+    table = read_toml(args.config).get("egomotion", {}) if args.config else {}
+    value, where = default_block(ESTIMATORS[estimator_name][0]), "shard_block"
+    for name, given in ((f"{args.config}: [egomotion] shard_block", table.get("shard_block")),
+                        ("GRIDSLAM_EGOMOTION_SHARD_BLOCK", os.environ.get("GRIDSLAM_EGOMOTION_SHARD_BLOCK")),
+                        ("--shard-block", args.shard_block)):
+        if given is not None:
+            value, where = given, name
+    if isinstance(value, str) and value.strip().isdigit():
+        value = int(value)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ConfigError(f"{where} must be a whole number of frames, at least 1; got {value!r}")
+    return value
+
+
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     name, params = estimator_settings(args)
-    return EgomotionService(runtime, name, params, args.instance).run()
+    return EgomotionService(runtime, name, params, args.instance, shard_block_setting(args, name)).run()

@@ -102,6 +102,7 @@ def closure_input(message: LoopClosure) -> ClosureInput:
 
 class ExpMapService(Service):
     name = "expmap"
+    exclusive = True   # the map grows with every frame
 
     def __init__(self, runtime: RuntimeConfig, config: ExpMapConfig, instance: str | None = None):
         super().__init__(runtime, instance)

@@ -68,6 +68,7 @@ def load_checkpoint(path: Path) -> tuple[dict, int, float | None]:
 
 class GridCellsService(Service):
     name = "gridcells"
+    exclusive = True   # the network's state runs through every frame
 
     def __init__(self, runtime: RuntimeConfig, config: GridCellsConfig, instance: str | None = None):
         super().__init__(runtime, instance)
@@ -85,11 +86,12 @@ class GridCellsService(Service):
             log.info("gridcells resumed from %s after frame %d", config.checkpoint, self.resumed_at)
 
     def setup(self) -> None:
-        self.subscribe("egomotion", self.on_egomotion)
+        # Increments come out of order from several egomotion instances: each waits for the one
+        # it follows. Those integrated before a restart (the checkpoint holds them) are stale.
+        self.subscribe("egomotion", self.on_egomotion, follows=lambda message: message.previous_seq,
+                       handled_up_to=self.resumed_at)
 
     def on_egomotion(self, message: EgoMotion) -> None:
-        if self.resumed_at is not None and message.header.seq <= self.resumed_at:
-            return   # integrated before the restart: the checkpoint holds it
         increment = message.increment
         if max(abs(increment.forward), abs(increment.left)) > MAX_STEP_M or abs(increment.yaw) > MAX_TURN_RAD:
             raise GridCellError(f"increment (forward {increment.forward:.3g} m, left {increment.left:.3g} m, "

@@ -101,6 +101,7 @@ def camera_of(message: CameraFrame, image: np.ndarray) -> Camera | None:
 
 class LoopClosureService(Service):
     name = "loopclosure"
+    exclusive = True   # templates and the closure votes run through every frame
 
     def __init__(self, runtime: RuntimeConfig, config: LoopClosureConfig, instance: str | None = None):
         super().__init__(runtime, instance)

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
+from schemas import ServiceStatus
 from services.common import codec, health, topics
 from services.common.convert import heading_of, image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig, open_session
@@ -59,12 +60,14 @@ class Recorder:
         self.lock = threading.Lock()
         self.session: zenoh.Session | None = None
         self._subscribers = []
+        self._last_status: dict[tuple[str, str], ServiceStatus] = {}   # (service, instance) → last published
 
     def __enter__(self) -> Recorder:
         self.session = open_session(self.runtime)
         for topic in RECORDED_TOPICS:
             self._subscribers.append(self.session.declare_subscriber(
                 topics.key(self.runtime.robot, topic), lambda sample, topic=topic: self._on_sample(topic, sample)))
+        self._subscribers.append(self.session.declare_subscriber(topics.key(self.runtime.robot, "status/*/*"), self._on_status))
         return self
 
     def __exit__(self, *exc) -> None:
@@ -84,14 +87,28 @@ class Recorder:
             seqs = self.recording.arrivals[topic]
             return max(seqs) if seqs else None
 
-    def live_services(self) -> set[str]:
-        """Names of the services of this robot whose health token is alive."""
-        return {service for _, service, _ in health.live_services(self.session, self.runtime.robot)}
+    def live_instances(self) -> set[str]:
+        """Instance names of the services of this robot whose health token is alive."""
+        return {instance for _, _, instance in health.live_services(self.session, self.runtime.robot)}
 
     def statuses(self) -> dict[str, dict]:
-        """The status counters of every live service of this robot, by service name."""
-        return {status.service: status.model_dump(exclude={"header", "schema_version"})
-                for status in health.statuses(self.session, self.runtime.robot, timeout=3)}
+        """The status counters of every service of this robot, by service name (by instance name
+        for a second instance of a service, e.g. egomotion-2): as the live ones answer now, and
+        as those that already ended (the source) last published them."""
+        with self.lock:
+            found = dict(self._last_status)
+        found.update({(status.service, status.instance): status
+                      for status in health.statuses(self.session, self.runtime.robot, timeout=3)})
+        return {service if instance == service else instance: status.model_dump(exclude={"header", "schema_version"})
+                for (service, instance), status in found.items()}
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        try:
+            status = codec.decode(sample.payload.to_bytes(), ServiceStatus, str(sample.encoding))
+        except codec.CodecError:
+            return
+        with self.lock:
+            self._last_status[(status.service, status.instance)] = status
 
     def map_snapshot(self):
         """The expmap service's whole map (MapSnapshot), or None when nobody answers."""

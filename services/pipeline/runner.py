@@ -23,9 +23,11 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.common.config import describe_preset, is_preset_file, load_config, preset_applies
+from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
+from services.egomotion import ESTIMATORS
+from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
 from services.pipeline.recorder import Recorder
@@ -40,6 +42,9 @@ log = logging.getLogger(__name__)
 STARTUP_TIMEOUT_S = 120.0   # services settle networks and load models before their token appears
 STOP_TIMEOUT_S = 5.0
 RESEND_AFTER_S = 2.0        # a stage restarted by the runner is back within this; then frames in flight go again
+# With N egomotion instances the source keeps at least N + SHARDED_SPARE_BLOCKS blocks of frames
+# in flight: one for each instance to work on, and the next one already sent (docs/pipeline.md).
+SHARDED_SPARE_BLOCKS = 1
 # A child that exits this many times in a row with no frame completed in between fails for a
 # reason a restart does not cure (a full disk, a bad file): the run stops and quotes it.
 RESTARTS_WITHOUT_PROGRESS = 3
@@ -81,6 +86,9 @@ class RunConfig(BaseModel):
         None, description="Use the router already at this endpoint instead of starting one (several robots on one network).")
     robot: str = Field("robot0", description="Robot name.")
     window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
+    egomotion_instances: int = Field(
+        1, ge=1, le=16, description="Ego-motion instances sharing the frames (docs/pipeline.md, sharded ego-motion); with "
+                                    "more than one, at least N + 1 blocks of frames are kept in flight.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
     closure: Literal["metric", "ratslam"] | None = Field(
         None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
@@ -246,9 +254,27 @@ def router_endpoint(config: RunConfig) -> str:
     return config.connect or config.listen
 
 
-def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
-    """`gridslam service NAME ...` arguments of one service of the run."""
-    args = ["service", name, "-e", router_endpoint(config), "--robot", config.robot, "--instance", name]
+def egomotion_children(config: RunConfig) -> list[str]:
+    """The run's egomotion processes: egomotion, egomotion-2, ... (also their instance names)."""
+    return ["egomotion"] + [f"egomotion-{index}" for index in range(2, config.egomotion_instances + 1)]
+
+
+def source_window(config: RunConfig) -> int:
+    """Frames in flight: the configured window, and with several egomotion instances enough for
+    each to have a block of frames and the next already sent."""
+    if config.egomotion_instances == 1:
+        return config.window
+    block = default_block(ESTIMATORS[config.egomotion][0]) if config.egomotion else SHARD_BLOCK
+    if config.config_file is not None:
+        block = read_toml(config.config_file).get("egomotion", {}).get("shard_block", block)
+    return max(config.window, (config.egomotion_instances + SHARDED_SPARE_BLOCKS) * int(block))
+
+
+def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
+    """`gridslam service NAME ...` arguments of one process of the run (`child`: its name, also its
+    instance name; egomotion-2 is a second egomotion)."""
+    name = child.partition("-")[0]
+    args = ["service", name, "-e", router_endpoint(config), "--robot", config.robot, "--instance", child]
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]
     if config.preset and preset_applies(name, config.preset):
@@ -279,7 +305,7 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
             "--source", config.source, "--start", str(start), "--origin", str(config.start), "--step", str(config.step),
-            "--window", str(config.window), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
+            "--window", str(source_window(config)), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]
     if config.preset:
@@ -331,8 +357,8 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         if config.foxglove:
             check_port_free(f"tcp/127.0.0.1:{config.foxglove}")
     stop = config.start + config.n_frames * config.step if config.n_frames else None
-    stages = ["egomotion", "gridcells"] + (["loopclosure", "expmap"] if config.mapping else [])
-    log_preset(config, ["source", *stages])
+    stages = egomotion_children(config) + ["gridcells"] + (["loopclosure", "expmap"] if config.mapping else [])
+    log_preset(config, ["source", *dict.fromkeys(child.partition("-")[0] for child in stages)])
     settings = source_settings(config)
     frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=settings.preset,
                          calibration=settings.calibration, world=settings.world(), topics=bag_settings(settings))
@@ -385,7 +411,7 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
             elif code is not None:              # an error of its own (a bad setting): restarting cures nothing
                 raise RunError(f"service {name} exited at start-up (code {code}): "
                                f"{supervisor.log_tail(name)} (log: {supervisor.children[name].log_path})")
-        live = recorder.live_services()
+        live = recorder.live_instances()   # every process is started with its name as its instance
         missing = set(stages) - live
         if not missing:
             for name in stages:
@@ -425,7 +451,7 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
             # No progress: say which running stage left the network (its lease expired: stopped,
             # hung, or cut off). It may come back (SIGCONT, network healed) and the run resumes.
             last_liveness_check = now
-            live = recorder.live_services()
+            live = recorder.live_instances()
             children = [supervisor.children[name] for name in ["source", *stages]]
             for child in children:
                 child.seen = child.seen or child.name in live

@@ -104,7 +104,7 @@ class FoxgloveService(Service):
 
     def setup(self) -> None:
         # drop_stale=False: a seq going backwards is a new run, shown afresh (as the viewer does).
-        self.subscribe("egomotion", self.on_egomotion, drop_stale=False)
+        self.subscribe("egomotion", self.on_egomotion, drop_stale=False, follows=lambda message: message.previous_seq)
         self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
         self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
         self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)

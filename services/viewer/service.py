@@ -106,7 +106,7 @@ class ViewerService(Service):
     def setup(self) -> None:
         # Every sample of the topics that draw a path or build the map; the newest only of the heavy
         # or momentary ones. drop_stale=False: a seq going backwards is a new run, shown afresh.
-        self.subscribe("egomotion", self.on_egomotion, drop_stale=False)
+        self.subscribe("egomotion", self.on_egomotion, drop_stale=False, follows=lambda message: message.previous_seq)
         self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
         self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
         self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)

@@ -235,6 +235,16 @@ def test_compose_resolves_to_the_documented_topology(compose):
     assert robot_env["GRIDSLAM_VIEWER_HTTP"].endswith(":8080")
 
 
+def test_egomotion_scales_and_the_stateful_stages_stay_single(compose):
+    """`docker-compose up --scale egomotion=N` needs a service with no fixed container name and no
+    fixed host port (docs/deploy.md); the stages that keep state are not scaled (docs/pipeline.md)."""
+    services = resolved(compose)["services"]
+    for name in ("egomotion", "egomotion-b"):
+        assert "container_name" not in services[name] and not services[name].get("ports"), name
+    for name in ("gridcells", "loopclosure", "expmap"):
+        assert services[name].get("deploy", {}).get("replicas", 1) == 1, name
+
+
 def test_estimator_override_changes_only_the_estimator(compose):
     base = resolved(compose)["services"]
     swapped = resolved(compose, COMPOSE_FILE, ESTIMATOR_OVERRIDE, ESTIMATOR="mono")["services"]

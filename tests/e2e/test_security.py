@@ -184,3 +184,35 @@ def test_status_query_is_answered_through_access_control(gridcells, certs):
         assert [(s.service, s.instance, s.state) for s in statuses] == [("gridcells", instance, "running")]
     finally:
         operator.close()
+
+
+def test_sharding_and_the_refusal_pass_access_control(gridcells, certs):
+    """Two egomotion instances see each other's shard tokens, and a second gridcells finds the
+    first with its liveliness query: the rules deploy/acl/router.json5 grants them (docs/pipeline.md)."""
+    port, instance = gridcells
+    client = ["-e", tls_endpoint(port), "--zenoh-config", str(CLIENT_MTLS)]
+    second = start(["service", "gridcells", "--integrator", "deadreckoning", "--instance", "second", *client,
+                    *cfg_flags(certs, "gridcells")])
+    _, err = second.communicate(timeout=60)
+    assert second.returncode == 1 and f"gridcells of robot {ROBOT} is already running (instance {instance})" in err, err
+
+    estimators = [start(["service", "egomotion", "--estimator", "passthrough", "--instance", name, *client,
+                         *cfg_flags(certs, "egomotion")]) for name in ("one", "two")]
+    sessions = [open_session(client_runtime(port, CLIENT_MTLS, certs, role)) for role in ("source", "operator")]
+    try:
+        source, operator = sessions
+        frames = [next(m for m in sample_messages(seq) if m.KIND == "CameraFrame") for seq in range(6)]
+
+        def members() -> dict[str, float]:
+            replies = [r.ok for r in operator.get(f"{topics.PREFIX}/{ROBOT}/status/egomotion/*", timeout=1) if r.ok]
+            return {s.instance: s.extra.get("shard_members", 0)
+                    for s in (codec.decode(r.payload.to_bytes(), encoding=str(r.encoding)) for r in replies)}
+        wait_for(lambda: len(members()) == 2, timeout=60, period=0.2)
+        for frame in frames:   # the instances announce their share once they hold three frames
+            source.put(topics.key(ROBOT, "camera/frame"), codec.encode(frame), encoding=zenoh.Encoding(codec.encoding_of(frame)))
+        assert wait_for(lambda: members() == {"one": 2, "two": 2}, timeout=20, period=0.2)
+    finally:
+        for session in sessions:
+            session.close()
+        results = [stop(process) for process in estimators]
+    assert all(code == 0 for code, _, _ in results), results

@@ -1,15 +1,18 @@
 """The service base on real in-process sessions: a message the core rejects is counted and the
 service keeps running; gaps and stale seq numbers are counted; a re-sent frame gets the outputs
-published for it the first time; a stop ends the loop and closes the session."""
+published for it the first time; messages published out of order by several instances are
+handled in the order their `previous_seq` links give; a stop ends the loop and closes the session."""
 
 import threading
 
+import pytest
 import zenoh
 
 from schemas import EgoMotion, GridPose, PlanarIncrement
 from services.common import codec, topics
 from services.common.errors import DataError
 from services.common.runtime import RuntimeConfig
+from services.common import service as service_base
 from services.common.service import Service
 from services.common.convert import planar_pose
 from tests.messages import header
@@ -21,12 +24,14 @@ class Doubler(Service):
 
     name = "doubler"
 
-    def __init__(self, runtime):
+    def __init__(self, runtime, in_order: bool = False):
         super().__init__(runtime, instance="test")
         self.handled: list[int] = []
+        self.in_order = in_order
 
     def setup(self):
-        self.subscribe("egomotion", self.on_egomotion)
+        self.subscribe("egomotion", self.on_egomotion,
+                       follows=(lambda message: message.previous_seq) if self.in_order else None)
 
     def on_egomotion(self, message: EgoMotion):
         if message.increment.forward < 0:
@@ -36,9 +41,51 @@ class Doubler(Service):
                                            heading=0.0, lattice_shift=(0.0, 0.0), step_length=0.0, integrator="grid"))
 
 
-def egomotion(seq: int, forward: float) -> bytes:
-    return codec.encode(EgoMotion(header=header(seq), increment=PlanarIncrement(forward=forward, left=0.0, yaw=0.0),
-                                  quality=1.0, estimator="passthrough"))
+def egomotion(seq: int, forward: float, previous: int | None = None) -> bytes:
+    return codec.encode(EgoMotion(header=header(seq), previous_seq=previous, quality=1.0, estimator="passthrough",
+                                  increment=PlanarIncrement(forward=forward, left=0.0, yaw=0.0)))
+
+
+@pytest.fixture
+def in_order_service(monkeypatch):
+    """A Doubler that puts messages in order by previous_seq, on a router; yields (service, publisher)."""
+    monkeypatch.setattr(service_base, "ORDER_WAIT_S", 1.0)
+    port = free_port()
+    router = router_session(port)
+    service = Doubler(RuntimeConfig(connect=[endpoint(port)]), in_order=True)
+    thread = threading.Thread(target=service.run)
+    thread.start()
+    client = client_session(port)
+    try:
+        wait_for(lambda: any(r.ok for r in client.liveliness().get(topics.health_key("robot0", "doubler", "test"), timeout=1)))
+        yield service, client.declare_publisher(topics.key("robot0", "egomotion"),
+                                                encoding=zenoh.Encoding(codec.encoding_of(EgoMotion)))
+    finally:
+        service.stop()
+        thread.join(timeout=5)
+        client.close()
+        router.close()
+
+
+def test_messages_wait_for_the_one_they_follow(in_order_service):
+    service, publisher = in_order_service
+    # Two instances' blocks arrive interleaved; 2 twice; 7 follows 5 (6 was never a frame).
+    for seq, previous in ((0, None), (3, 2), (4, 3), (1, 0), (2, 1), (2, 1), (7, 5), (5, 4)):
+        publisher.put(egomotion(seq, 1.0, previous))
+    wait_for(lambda: len(service.handled) >= 7)
+    assert service.handled == [0, 1, 2, 3, 4, 5, 7]
+    c = service.counters
+    assert (c.stale, c.gaps) == (1, 1)
+
+
+def test_a_message_whose_predecessor_never_comes_waits_a_bounded_time(in_order_service):
+    service, publisher = in_order_service
+    publisher.put(egomotion(0, 1.0, None))
+    publisher.put(egomotion(2, 1.0, 1))   # 1 was lost for good
+    publisher.put(egomotion(3, 1.0, 2))
+    wait_for(lambda: service.handled == [0])
+    wait_for(lambda: service.handled == [0, 2, 3], timeout=5)   # after ORDER_WAIT_S (1 s here)
+    assert service.counters.gaps == 1
 
 
 def test_rejections_gaps_stale_and_replay():
@@ -71,7 +118,9 @@ def test_rejections_gaps_stale_and_replay():
         c = service.counters
         assert (c.received, c.rejected, c.gaps, c.stale, c.replayed) == (4, 1, 2, 1, 1)
         assert thread.is_alive()
-        assert service.status().extra == {"replayed": 1, "rejected": 1}
+        extra = service.status().extra
+        assert {name: extra[name] for name in ("replayed", "rejected")} == {"replayed": 1, "rejected": 1}
+        assert set(extra) == {"replayed", "rejected", "cpu_s", "busy_cpu_s"} and 0 <= extra["busy_cpu_s"] <= extra["cpu_s"]
     finally:
         service.stop()
         thread.join(timeout=5)

@@ -39,6 +39,10 @@ def test_noise_is_seeded_with_the_given_deviation():
         estimator = make_estimator("passthrough", None, params)
         runs.append(np.array([(i.forward, i.left, i.yaw) for i in map(estimator.estimate, many)][1:]))
     assert np.array_equal(runs[0], runs[1])
+    # A frame's noise depends on the frame, not on what the estimator saw before it.
+    restarted = make_estimator("passthrough", None, params)
+    restarted.estimate(many[999])
+    assert (restarted.estimate(many[1000]).forward, restarted.estimate(many[1001]).forward) == tuple(runs[0][999:1001, 0])
     assert runs[0][:, 0].std() == pytest.approx(0.01, rel=0.1) and runs[0][:, 0].mean() == pytest.approx(0.1, abs=1e-3)
     assert np.all(runs[0][:, 1] == 0.0) and runs[0][:, 2].std() == pytest.approx(0.002, rel=0.1)
 
