@@ -29,6 +29,7 @@ import zenoh
 from services.cli.service import SERVICES
 from services.common import codec, topics
 from services.common.runtime import RuntimeConfig, open_session
+from services.common.service import REPLAY_FRAMES
 from tests.netutil import REPO, endpoint, free_port, port_open, start, stop, wait_for
 from tests.tlsutil import CLIENT_MTLS, client_runtime, make_certs, tls_endpoint
 
@@ -419,3 +420,68 @@ def test_compose_topology_runs_as_local_processes(tmp_path, secure):
     # The journals went where robot.env puts them on the results volume.
     stores = [Path(value) for name, value in env.items() if name.endswith("_STORE")]
     assert stores and all(path.is_relative_to(tmp_path / "results" / robot) and path.is_file() for path in stores), stores
+
+
+LAP = 20   # frames per lap of the looping source in the restart test
+
+
+def test_a_source_killed_mid_run_comes_back_where_the_pipeline_is(tmp_path):
+    """The compose topology as local processes, the source looping laps of LAP frames as the
+    default stack does: the source killed with SIGKILL once its first frames are older than what
+    the services keep to answer a re-sent frame, and started again with the same command (the
+    container's restart policy), goes on where the pipeline is (no earlier frame comes again):
+    poses resume and cross into the next lap, and the map holds every frame once, in order,
+    stamps rising."""
+    robot_env = read_env_file(ROBOT_ENV)
+    assert robot_env.get("GRIDSLAM_SOURCE_RESUME") == "true" and robot_env.get("GRIDSLAM_SOURCE_LOOP") == "true"
+    robot = robot_env["GRIDSLAM_RUNTIME_ROBOT"]
+    port = free_port()
+    router = start(["router", "--listen", endpoint(port), "--zenoh-config", str(REPO / "deploy" / "router.json5")])
+    env = {**local_environment(robot_env, endpoint(port), tmp_path / "results"),
+           "GRIDSLAM_SOURCE_STOP": str(LAP), "GRIDSLAM_SOURCE_LOOP": "true"}
+    processes, session, killed = {}, None, None
+    poses: list[int] = []
+    lock = threading.Lock()
+
+    def on_pose(sample: zenoh.Sample) -> None:
+        with lock:
+            poses.append(codec.decode(sample.payload.to_bytes(), encoding=str(sample.encoding)).header.seq)
+
+    def mapped_beyond(seq: int):
+        def check():
+            crashed = {name: p.returncode for name, p in processes.items() if p.poll() is not None}
+            assert not crashed, f"services exited: {crashed}"
+            with lock:
+                return bool(poses) and max(poses) >= seq
+        return check
+
+    try:
+        wait_for(lambda: port_open(port) or router.poll() is not None)
+        session = open_session(RuntimeConfig(connect=[endpoint(port)], robot=robot))
+        subscriber = session.declare_subscriber(topics.key(robot, "map/pose"), on_pose)
+        for name in PIPELINE:
+            processes[name] = start(["service", name], env=env, cwd=tmp_path)
+        wait_for(mapped_beyond(REPLAY_FRAMES + 5), timeout=180, period=0.2)
+        killed = processes.pop("source")
+        killed.kill()
+        killed.wait(timeout=10)
+        with lock:
+            before, restarted_at = max(poses), len(poses)
+        processes["source"] = start(["service", "source"], env=env, cwd=tmp_path)
+        wait_for(mapped_beyond(before + LAP), timeout=120, period=0.2)
+        subscriber.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        results = {name: stop(process) for name, process in processes.items()}
+        stop(router)
+        if killed is not None:
+            stop(killed)
+    for name, (code, _, err) in results.items():
+        assert code == 0, f"{name}: {err[-2000:]}"
+    assert min(poses[restarted_at:]) >= before, "the restarted source sent frames the pipeline had handled"
+    records = [json.loads(line.rsplit("\t", 1)[0]) for line in
+               (tmp_path / "results" / robot / "experience_map.log").read_text().splitlines()[1:]]
+    frames = [record["frame"] for record in records]
+    assert frames == list(range(len(frames))) and frames[-1] >= before + LAP, "a frame is missing from the map, or there twice"
+    assert all(b > a for a, b in zip((r["stamp"] for r in records), (r["stamp"] for r in records[1:])))
