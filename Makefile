@@ -7,7 +7,7 @@ BIN = $(VENV)/bin
 $(BIN)/gridslam: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[plots,test]'
+	$(BIN)/python -m pip install -q -e '.[plots,ros,foxglove,test]'
 	touch $@
 
 .PHONY: demo test bench wheels docker-test

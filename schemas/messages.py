@@ -65,6 +65,13 @@ class GridPose(Message):
     integrator: str = Field(description="Integrator that produced it: grid (the attractor network) or deadreckoning.")
     increment_covariance: PlanarCovariance | None = covariance_field(
         "the error of this frame's integrated increment (the ego-motion's, plus the lattice's direction noise)")
+    decoder: str | None = Field(
+        None, description="Lattice flow decoder (paper, fft, subpixel or calibrated); absent for dead reckoning.")
+    step_source: Literal["odometry", "lattice"] = Field(
+        "odometry", description="Where the step length came from: the ego-motion (paper eq. 5) or the calibrated lattice flow.")
+    heading_model: Literal["sum", "ring"] = Field(
+        "sum", description="Heading model: summed yaw (the paper's) or a head-direction ring attractor.")
+    modules: int = Field(1, ge=0, description="Grid modules whose flow was combined (0 for dead reckoning).")
 
 
 class GridActivity(Message):

@@ -7,8 +7,9 @@ import argparse
 from pathlib import Path
 
 from services.evaluation.results import format_table
-from services.gridcells.decoders import DECODERS
 from services.gridcells.motion_io import FORMATS
+
+DECODERS = ("paper", "fft", "subpixel", "calibrated")  # = integrator.DECODER_NAMES (a test checks), kept literal: scipy loads only when a command runs
 
 
 def velocity_scale(text: str) -> float | str:
@@ -35,6 +36,19 @@ def add_network_flags(parser: argparse.ArgumentParser) -> None:
                         help="Gaussian rotation noise per frame, standard deviation in degrees")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the noise (and of the simulated walk)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
+    parser.add_argument("--step", choices=("odometry", "lattice"), default="odometry",
+                        help="step length from the input (default; paper eq. 5) or from the calibrated lattice flow "
+                             "(needs --decoder calibrated)")
+    parser.add_argument("--modules", type=int, default=1, metavar="N",
+                        help="grid modules of different spacings, combined by precision (default 1; more need --decoder calibrated)")
+    parser.add_argument("--heading", choices=("sum", "ring"), default="sum",
+                        help="heading model: summed yaw (default, the paper's) or a head-direction ring attractor")
+
+
+def grid_options(args):
+    from services.gridcells.offline import GridOptions
+
+    return GridOptions(step=args.step, modules=args.modules, heading=args.heading)
 
 
 def register(subparsers) -> None:
@@ -62,7 +76,7 @@ def run(args) -> int:
     result = integrate(
         args.input, fmt=args.fmt, decoder=args.decoder, velocity_scale=args.velocity_scale, n_frames=args.n_frames,
         noise_trans=args.noise_trans, noise_rot_deg=args.noise_rot, seed=args.seed,
-        network_rotation_deg=args.network_rotation, out=args.out,
+        network_rotation_deg=args.network_rotation, out=args.out, options=grid_options(args),
     )
     print(format_table(integration_table(result)))
     print(f"results: {result.out_dir}")

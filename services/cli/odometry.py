@@ -9,7 +9,7 @@ from pathlib import Path
 from services.egomotion import ESTIMATORS
 from services.egomotion.offline import run_offline, summary_rows
 from services.evaluation.results import format_table
-from services.source.spec import add_world_arguments, parse_world_flags
+from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
 
 
 def register(subparsers) -> None:
@@ -21,7 +21,7 @@ def register(subparsers) -> None:
         "and trajectory.png; print a metric table.",
     )
     parser.add_argument("--source", required=True, metavar="SPEC",
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
     parser.add_argument("--estimator", metavar="NAME", help=f"{', '.join(ESTIMATORS)} (default: the one the preset or config names)")
     parser.add_argument("--preset", metavar="NAME", help="dataset preset for the source and the estimator (nubot, kitti, stlucia, synthetic, campus) or a preset file")
     parser.add_argument("--config", type=Path, metavar="FILE", help="estimator TOML overriding the preset (docs/egomotion.md)")
@@ -35,6 +35,7 @@ def register(subparsers) -> None:
                         "(forward,left,yaw or LIBVISO2's table)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
     add_world_arguments(parser)
+    add_bag_arguments(parser)
     parser.set_defaults(func=run)
 
 
@@ -52,6 +53,7 @@ def run(args) -> int:
         reference=args.reference,
         out=args.out,
         world=parse_world_flags(args.world, args.laps),
+        topics=bag_settings(args),
     )
     print(format_table(summary_rows(result)))
     print(f"results: {folder}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -9,15 +10,17 @@ from pathlib import Path
 from services.common.config import load_config
 from services.common.runtime import DEFAULT_ROUTER
 from services.expmap.service import add_map_arguments
-from services.source.spec import add_world_arguments
+from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
 
 
 def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--source", required=source_required,
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
+    parser.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
     parser.add_argument("--preset", help="dataset preset: synthetic, campus, nubot, kitti, stlucia, or a preset file "
                                          "(base preset and per-service tables, docs/sources.md)")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file for the source")
@@ -25,7 +28,9 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
     parser.add_argument("--n-frames", type=int, help="process only this many frames")
     parser.add_argument("--start", type=int, help="first frame index")
-    parser.add_argument("--step", type=int, help="take every step-th frame")
+    parser.add_argument("--step", type=step_value, action="append", metavar="N|odometry|lattice",
+                        help="a number: take every N-th frame; odometry or lattice: where the grid cells' step length "
+                             "comes from (default odometry); may be given twice")
     parser.add_argument("-l", "--listen", help=f"the run's router endpoint (default {DEFAULT_ROUTER})")
     parser.add_argument("-e", "--connect", metavar="ENDPOINT",
                         help="use the router at ENDPOINT instead of starting one (e.g. several robots on one network)")
@@ -36,6 +41,24 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
     add_world_arguments(parser)
+    parser.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
+                        help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (default 8765; extra `foxglove`)")
+    parser.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
+                        help="do not write run.mcap (nor keep the camera images for it)")
+    add_bag_arguments(parser)
+
+
+def step_value(text: str) -> int | str:
+    """`--step`: a frame stride (a positive integer) or the grid cells' step source."""
+    if text in ("odometry", "lattice"):
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, odometry or lattice, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, odometry or lattice, got {text!r}")
+    return value
 
 
 def register(subparsers) -> None:
@@ -72,19 +95,28 @@ class Progress:
             self.stream.write("\n")
 
 
+def run_flags(args) -> dict:
+    """The RunConfig fields the flags set (None: not given). `--step` given a number is the
+    frame stride, given odometry or lattice the grid cells' step source."""
+    steps = args.step or []
+    strides = [value for value in steps if isinstance(value, int)]
+    sources = [value for value in steps if isinstance(value, str)]
+    return {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
+            "step_source": sources[-1] if sources else None, "modules": args.modules, "heading": args.heading,
+            "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames,
+            "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
+            "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,
+            "map_optimizer": args.map_optimizer, "world": parse_world_flags(args.world, args.laps) or None,
+            "mcap": args.mcap, "foxglove": args.foxglove, **bag_settings(args)}
+
+
 def execute(args, **defaults) -> int:
     """Build the RunConfig from defaults < config file [run] < flags, run it, print the summary."""
     from services.evaluation.results import format_table
     from services.pipeline.report import summary_rows
     from services.pipeline.runner import RunConfig, run_pipeline
-    from services.source.spec import parse_world_flags
 
-    flags = {"source": args.source, "egomotion": args.egomotion, "integrator": args.integrator, "decoder": args.decoder,
-             "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames, "start": args.start,
-             "step": args.step, "listen": args.listen, "connect": args.connect, "robot": args.robot, "mapping": args.mapping, "view": args.view,
-             "closure": args.closure, "map_optimizer": args.map_optimizer,
-             "world": parse_world_flags(args.world, args.laps) or None}
-    config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=flags)
+    config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args))
     progress = Progress()
     try:
         result = run_pipeline(config, args.out, progress=progress)

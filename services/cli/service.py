@@ -17,6 +17,7 @@ SERVICES: dict[str, str] = {
     "loopclosure": "services.loopclosure.service",
     "expmap": "services.expmap.service",
     "viewer": "services.viewer.service",
+    "foxglove": "services.ros.foxglove",
 }
 
 

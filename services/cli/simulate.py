@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from services.cli.integrate import add_network_flags
+from services.cli.integrate import DECODERS, add_network_flags, grid_options
 from services.evaluation.results import format_table
-from services.gridcells.decoders import DECODERS
 from services.gridcells.simulation import WalkParams
 
 
@@ -27,8 +26,9 @@ def register(subparsers) -> None:
                     "of neuron (0, 0) and its gridness score.",
     )
     parser.add_argument("--n-frames", type=int, default=3500, metavar="N", help="frames of the drift run (default 3500, the paper's)")
-    parser.add_argument("--decoders", type=decoder_list, default=tuple(DECODERS), metavar="LIST",
-                        help=f"comma-separated decoders to run (default {','.join(DECODERS)})")
+    parser.add_argument("--decoders", type=decoder_list, default=("paper", "fft", "subpixel"), metavar="LIST",
+                        help=f"comma-separated decoders to run, of {','.join(DECODERS)} (default paper,fft,subpixel); --step "
+                             "and --modules apply to calibrated")
     parser.add_argument("--firing-frames", type=int, default=30000, metavar="N",
                         help="frames of the firing-map run (default 30000 = 10 minutes at 50 Hz; 0 skips it)")
     parser.add_argument("--frame-period", type=float, default=WalkParams.frame_period_s, metavar="S",
@@ -43,7 +43,7 @@ def run(args) -> int:
     result = simulate(
         n_frames=args.n_frames, seed=args.seed, decoders=args.decoders, noise_trans=args.noise_trans,
         noise_rot_deg=args.noise_rot, velocity_scale=args.velocity_scale, firing_frames=args.firing_frames,
-        walk_params=WalkParams(frame_period_s=args.frame_period), out=args.out,
+        walk_params=WalkParams(frame_period_s=args.frame_period), out=args.out, options=grid_options(args),
     )
     print(format_table(simulation_table(result)))
     print(f"results: {result.out_dir}")

@@ -146,6 +146,7 @@ def run_offline(
     out: Path | None = None,
     results_root: Path = Path("results"),
     world: dict | None = None,
+    topics: dict | None = None,
 ) -> tuple[OdometryResult, Path]:
     """Open the source ``spec``, build the estimator from the preset and config file, run
     `odometry` and write the results folder (``out``, or results/<timestamp>/ with a
@@ -185,6 +186,7 @@ def run_offline(
         calibration=calibration,
         mono=name != "stereo",
         world=world,
+        topics=topics,   # a ROS bag's topics (source/spec.py)
     )
     estimator_instance = make_estimator(name, getattr(source, "camera", None), all_params[name])
     reference_trajectory = load_reference(reference) if reference is not None else None
@@ -199,6 +201,7 @@ def run_offline(
         "step": step,
         "reference": None if reference is None else str(reference),
         "world": world or {},
+        **{key: value for key, value in (topics or {}).items() if value is not None},
         "camera": None if getattr(source, "camera", None) is None else dataclasses.asdict(source.camera),
         "estimator": estimator_config(estimator_instance),
     }

@@ -132,7 +132,7 @@ class PoseGraph:
         window = range(self._cursor, self._cursor + min(REFRESH_PER_SOLVE, count))
         self._cursor = (self._cursor + REFRESH_PER_SOLVE) % count
         # The current experience too: the experiences made until the next solve are composed from it.
-        keys = sorted(self._refresh.union(i % count for i in window).union([self.map.current]) & set(range(count)))
+        keys = sorted(key for key in self._refresh.union((i % count for i in window), [self.map.current]) if key < count)
         self._refresh.clear()
         poses, moved = self.map._poses, []
         for key in keys:

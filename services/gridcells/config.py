@@ -14,15 +14,25 @@ class GridCellsConfig(BaseModel):
 
     integrator: Literal["grid", "deadreckoning"] = Field(
         "grid", description="grid: the periodic attractor network; deadreckoning: plain integration of the increments (baseline).")
-    decoder: Literal["paper", "fft", "subpixel"] = Field("subpixel", description="How the lattice flow is read between frames.")
+    decoder: Literal["paper", "fft", "subpixel", "calibrated"] = Field(
+        "subpixel", description="How the lattice flow is read between frames; calibrated: subpixel's shift through the inverse of "
+                                "the flow measured once per parameter set (cached on disk).")
+    step: Literal["odometry", "lattice"] = Field(
+        "odometry", description="Where the step length comes from: the ego-motion (paper eq. 5) or the calibrated lattice flow "
+                                "(needs decoder = calibrated).")
+    modules: int = Field(1, ge=1, le=4, description="Grid modules of different spacings (ratio ~1.4), run batched and combined "
+                                                    "by precision (more than 1 needs decoder = calibrated).")
+    heading: Literal["sum", "ring"] = Field(
+        "sum", description="Heading model: sum (integrated yaw, the paper's) or ring (a head-direction ring attractor).")
     velocity_scale: float | Literal["auto"] = Field(
         "auto", description="Network input units per metre; auto derives it from typical_speed.")
     typical_speed: float = Field(
         0.5, gt=0, description="Typical distance travelled per frame in metres, used by velocity_scale = auto.")
     neurons: int = Field(128, ge=16, le=512, description="Side n of the n×n network.")
     direction_sigma: float = Field(
-        0.04, ge=0, description="Standard deviation of the direction of travel read from the lattice, radians per frame: "
-                                "added (as sideways error of the step) to the ego-motion's covariance in grid/pose.")
+        0.005, ge=0, description="Standard deviation of the direction of travel read from the lattice, radians per frame: "
+                                 "added (as sideways error of the step) to the ego-motion's covariance in grid/pose "
+                                 "(measured: subpixel 0.0047 rad rms on the demo, calibrated 0.0004; docs/gridcells.md).")
     activity_every: int = Field(5, ge=0, description="Publish grid/activity every this many frames (0: never).")
     activity_size: int = Field(64, ge=8, le=512, description="Side of the downsampled activity image.")
     checkpoint: Path | None = Field(

@@ -105,27 +105,72 @@ def decode_subpixel(prev_field, field, search: int = 9) -> tuple[float, float]:
     the search window, then Newton steps on its band-limited interpolant
     c(s) = Σ_k m_k·Re(X_k·exp(2πi k·s)) (X the weighted cross-power spectrum)."""
     prev_field, field = _check(prev_field, field, search)
-    n = field.shape[0]
+    return _refine(_cross_power(prev_field, field), field.shape[0], search)
+
+
+@functools.lru_cache(maxsize=16)
+def _window_index(n: int, search: int) -> np.ndarray:
+    """Flat indices into an n×n surface of _window's (2S+1)² array (dx outer, dy inner)."""
+    offsets = np.arange(-search, search + 1) % n
+    index = (offsets[None, :] * n + offsets[:, None])  # [dx, dy] → surface[dy, dx]
+    index.setflags(write=False)
+    return index
+
+
+def _refine(cross: np.ndarray, n: int, search: int) -> tuple[float, float]:
+    """decode_subpixel's peak and Newton refinement from the (unweighted) cross-power."""
     weight, keep, kx, ky, multiplicity = _subpixel_grid(n)
-    cross = _cross_power(prev_field, field) * weight
+    cross = cross * weight
     corr = scipy.fft.irfft2(cross, s=(n, n))
-    dx, dy = _first_argmax(_window(corr, search), search)
+    dx, dy = _first_argmax(corr.ravel()[_window_index(n, search)], search)
     spectrum = cross[keep] * multiplicity
-    shift = np.array([float(dx), float(dy)])
+    s0, s1 = float(dx), float(dy)
+    kxx, kxy, kyy = _second_moments(n)
     for _ in range(_NEWTON_STEPS):
-        rotated = spectrum * np.exp(1j * (kx * shift[0] + ky * shift[1]))
-        gradient = -np.array([kx @ rotated.imag, ky @ rotated.imag])
-        re = rotated.real
-        hessian = -np.array([[kx * kx @ re, kx * ky @ re], [kx * ky @ re, ky * ky @ re]])
-        if not (np.linalg.det(hessian) > 0 and hessian[0, 0] < 0):
+        rotated = spectrum * np.exp(1j * (kx * s0 + ky * s1))
+        im, re = rotated.imag, rotated.real
+        g0, g1 = -float(kx @ im), -float(ky @ im)
+        h00, h01, h11 = -float(kxx @ re), -float(kxy @ re), -float(kyy @ re)
+        det = h00 * h11 - h01 * h01
+        if not (det > 0 and h00 < 0):
             break  # not at a maximum: keep the integer peak (or the last good estimate)
-        step = -np.linalg.solve(hessian, gradient)
-        if np.max(np.abs(step)) > 1.0:
+        step0, step1 = -(h11 * g0 - h01 * g1) / det, -(h00 * g1 - h01 * g0) / det
+        if max(abs(step0), abs(step1)) > 1.0:
             break  # the interpolant's peak is not near this integer peak
-        shift += step
-        if np.max(np.abs(step)) < 1e-6:
+        s0, s1 = s0 + step0, s1 + step1
+        if max(abs(step0), abs(step1)) < 1e-6:
             break
-    return float(shift[0]), float(shift[1])
+    return s0, s1
+
+
+@functools.lru_cache(maxsize=8)
+def _second_moments(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    _, _, kx, ky, _ = _subpixel_grid(n)
+    arrays = (kx * kx, kx * ky, ky * ky)
+    for array in arrays:
+        array.setflags(write=False)
+    return arrays
+
+
+class SubpixelReader:
+    """decode_subpixel frame after frame: each field is transformed once (its spectrum is the
+    next frame's previous one). Same result as decode_subpixel(previous, field, search)."""
+
+    def __init__(self, field: np.ndarray, search: int = 9):
+        field = np.asarray(field)
+        _check(field, field, search)
+        self.n, self.search = field.shape[0], search
+        self._previous = scipy.fft.rfft2(field.astype(np.float64))
+
+    def __call__(self, field: np.ndarray) -> tuple[float, float]:
+        """The shift from the previous field to ``field``, which becomes the previous one."""
+        spectrum = scipy.fft.rfft2(np.asarray(field, dtype=np.float64))
+        cross = np.conj(self._previous) * spectrum
+        self._previous = spectrum
+        return _refine(cross, self.n, self.search)
+
+    def reset(self, field: np.ndarray) -> None:
+        self._previous = scipy.fft.rfft2(np.asarray(field, dtype=np.float64))
 
 
 def _rows_per_product(n: int) -> int:

@@ -20,8 +20,8 @@ from services.evaluation import metrics as evaluation
 from services.evaluation.plots import plot_heatmaps, plot_series, plot_trajectories
 from services.evaluation.results import results_dir, write_config, write_json
 from services.evaluation.trajectory import Trajectory, wrap_angle, write_tum
-from services.gridcells.decoders import DECODERS
-from services.gridcells.integrator import DeadReckoning, GridCellIntegrator, auto_velocity_scale
+from services.gridcells.gridcode import GridCode
+from services.gridcells.integrator import DECODER_NAMES, DeadReckoning, GridCellIntegrator, auto_velocity_scale
 from services.gridcells.motion_io import MotionInput, add_noise, load_motion
 from services.gridcells.network import GridNetwork, NetworkParams
 from services.gridcells.simulation import (
@@ -51,6 +51,7 @@ class IntegrationRun:
     shifts: np.ndarray
     saturations: int
     seconds: float
+    gridcode: Trajectory | None = None  # the position read from the modules' phases (calibrated decoder)
 
     def shift_stats(self) -> dict:
         """Median and 95th percentile of the decoded lattice shift per frame (neurons) over
@@ -96,6 +97,8 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
         increments = increments @ np.array([[c, s], [-s, c]])
         heading_input = None if heading_input is None else heading_input + rotation
     every = max(1, int(n * PROGRESS_EVERY))
+    code = GridCode(integrator.tables, integrator.velocity_scale, integrator.rotations) if getattr(integrator, "tables", ()) else None
+    coded = np.zeros(n, dtype=complex)
     started = time.perf_counter()
     for k in range(n):
         if body:
@@ -105,6 +108,8 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
             step = integrator.step_world(increments[k, 0], increments[k, 1], heading)
         poses[k] = step.pose.x, step.pose.y, step.pose.heading
         shifts[k] = step.shift
+        if code is not None:  # the phases, searched within one module spacing of the integrated position
+            coded[k] = code.decode(integrator.network.fields, complex(step.pose.x, step.pose.y))
         if (k + 1) % every == 0 and name != "deadreckoning":
             log.info("%s: frame %d of %d (%.1f ms per frame)", name, k + 1, n, 1000 * (time.perf_counter() - started) / (k + 1))
     seconds = time.perf_counter() - started
@@ -115,13 +120,35 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
     x = x0 + c * poses[:, 0] - s * poses[:, 1]
     y = y0 + s * poses[:, 0] + c * poses[:, 1]
     trajectory = Trajectory.from_planar(motion.stamps, x, y, wrap_angle(poses[:, 2] - rotation))
-    return IntegrationRun(name, trajectory, shifts, int(integrator.saturations), seconds)
+    gridcode = None
+    if code is not None:
+        gx, gy = x0 + c * coded.real - s * coded.imag, y0 + s * coded.real + c * coded.imag
+        gridcode = Trajectory.from_planar(motion.stamps, gx, gy, wrap_angle(poses[:, 2] - rotation))
+    return IntegrationRun(name, trajectory, shifts, int(integrator.saturations), seconds, gridcode)
 
 
-def run_grid(motion: MotionInput, decoder: str, velocity_scale: float, params: NetworkParams = NetworkParams()) -> IntegrationRun:
+@dataclass(frozen=True)
+class GridOptions:
+    """The grid-cell integrator's options beside the decoder (GridCellIntegrator): the step
+    source, the number of grid modules and the heading model."""
+
+    step: str = "odometry"
+    modules: int = 1
+    heading: str = "sum"
+
+    def label(self, decoder: str) -> str:
+        """A run's name: the decoder, with the options that differ from the defaults."""
+        parts = [decoder] + ([f"step-{self.step}"] if self.step != "odometry" else []) + (
+            [f"{self.modules}-modules"] if self.modules != 1 else []) + ([f"heading-{self.heading}"] if self.heading != "sum" else [])
+        return "+".join(parts)
+
+
+def run_grid(motion: MotionInput, decoder: str, velocity_scale: float, params: NetworkParams = NetworkParams(),
+             options: GridOptions = GridOptions()) -> IntegrationRun:
     """The grid-cell integrator with one decoder over every row of `motion`."""
-    integrator = GridCellIntegrator(params, decoder=decoder, velocity_scale=velocity_scale, heading0=_network_heading0(motion))
-    run = _drive(integrator, motion, decoder)
+    integrator = GridCellIntegrator(params, decoder=decoder, velocity_scale=velocity_scale, heading0=_network_heading0(motion),
+                                    step=options.step, modules=options.modules, heading=options.heading)
+    run = _drive(integrator, motion, options.label(decoder))
     if run.saturations:
         log.warning(
             "%s: the lattice flow saturated in %d of %d frames (velocity scale %.4g units/m): lower --velocity-scale",
@@ -162,7 +189,39 @@ def trajectory_metrics(est: Trajectory, reference: Trajectory | None, deadreckon
     if deadreckoning is not None:
         differences = np.linalg.norm(est.positions - deadreckoning.positions, axis=1)
         result |= {"endpoint_difference_from_dr_m": float(differences[-1]), "mean_difference_from_dr_m": float(differences.mean())}
+        result |= direction_errors(est, deadreckoning)
     return result
+
+
+def direction_errors(est: Trajectory, deadreckoning: Trajectory) -> dict:
+    """How the integrator's per-frame displacement and heading differ from dead reckoning of
+    the same inputs (its input): the direction of travel per frame (rms and mean, degrees,
+    over the frames where both moved; and the rms weighted by the step length, which frames
+    of almost no motion, whose direction means little, do not dominate), the step length (mean
+    ratio) and the heading (final and largest difference, degrees: the drift of a heading
+    model against the summed yaw)."""
+    step_est, step_dr = np.diff(est.positions[:, :2], axis=0), np.diff(deadreckoning.positions[:, :2], axis=0)
+    moved = (np.hypot(*step_dr.T) > 0) & (np.hypot(*step_est.T) > 0)
+    result = {}
+    if np.any(moved):
+        angle = np.angle((step_est[moved, 0] + 1j * step_est[moved, 1]) / (step_dr[moved, 0] + 1j * step_dr[moved, 1]))
+        length = np.hypot(*step_dr[moved].T)
+        result |= {"direction_rms_deg": float(np.degrees(np.sqrt(np.mean(angle**2)))),
+                   "direction_mean_deg": float(np.degrees(angle.mean())),
+                   "direction_weighted_rms_deg": float(np.degrees(np.sqrt(np.sum((length * angle) ** 2) / np.sum(length**2)))),
+                   "step_ratio_mean": float(np.mean(np.hypot(*step_est[moved].T) / np.hypot(*step_dr[moved].T)))}
+    heading = np.degrees(np.abs(wrap_angle(est.planar()[2] - deadreckoning.planar()[2])))
+    result |= {"heading_difference_end_deg": float(heading[-1]), "heading_difference_max_deg": float(heading.max())}
+    return result
+
+
+def gridcode_metrics(run: IntegrationRun, truth: Trajectory | None, deadreckoning: Trajectory) -> dict:
+    """The grid-code position (from the modules' phases) scored like the integrated one, and
+    how far it is from the integrated position (mean and largest, m)."""
+    apart = np.linalg.norm(run.gridcode.positions - run.trajectory.positions, axis=1)
+    result = {key: value for key, value in trajectory_metrics(run.gridcode, truth, deadreckoning).items()
+              if not key.startswith(("direction", "step_ratio", "heading"))}
+    return result | {"mean_difference_from_integrated_m": float(apart.mean()), "max_difference_from_integrated_m": float(apart.max())}
 
 
 def error_over_time(est: Trajectory, reference: Trajectory) -> np.ndarray:
@@ -203,6 +262,7 @@ def integrate(
     out: Path | None = None,
     results_root: Path = Path("results"),
     write: bool = True,
+    options: GridOptions = GridOptions(),
 ) -> IntegrationResult:
     """Load a motion file, integrate it with the grid cells and with dead reckoning, score
     both (against the ground truth when the input is a trajectory), and write the results
@@ -211,8 +271,8 @@ def integrate(
     `network_rotation_deg` turns the world frame the network runs in (results are turned
     back): the integer decoders snap the direction of travel to lattice directions, which
     favours routes aligned with them; turning the frame shows how much of a result is that."""
-    if decoder not in DECODERS:
-        raise ConfigError(f"unknown decoder '{decoder}': choose one of {', '.join(DECODERS)}")
+    if decoder not in DECODER_NAMES:
+        raise ConfigError(f"unknown decoder '{decoder}': choose one of {', '.join(DECODER_NAMES)}")
     if not math.isfinite(network_rotation_deg):
         raise ConfigError(f"network rotation {network_rotation_deg}: must be a finite number of degrees")
     motion = load_motion(path, fmt).head(n_frames)
@@ -220,7 +280,7 @@ def integrate(
     motion = replace(motion, network_rotation=motion.network_rotation + math.radians(network_rotation_deg))
     scale = resolve_velocity_scale(motion, velocity_scale, params)
     log.info("integrating %s with the %s decoder, velocity scale %.4g network units per metre", motion.describe(), decoder, scale)
-    grid = run_grid(motion, decoder, scale, params)
+    grid = run_grid(motion, decoder, scale, params, options)
     deadreckoning = run_deadreckoning(motion)
     truth = motion.groundtruth
     metrics = {
@@ -236,6 +296,9 @@ def integrate(
             "network_rotation_deg": math.degrees(motion.network_rotation),
         },
         "decoder": decoder,
+        "step": options.step,
+        "modules": options.modules,
+        "heading": options.heading,
         "velocity_scale": scale,
         "saturations": grid.saturations,
         "seconds": grid.seconds,
@@ -243,6 +306,8 @@ def integrate(
         "grid": trajectory_metrics(grid.trajectory, truth, deadreckoning.trajectory) | grid.shift_stats(),
         "deadreckoning": trajectory_metrics(deadreckoning.trajectory, truth),
     }
+    if grid.gridcode is not None:
+        metrics["gridcode"] = gridcode_metrics(grid, truth, deadreckoning.trajectory)
     if truth is not None:
         metrics["groundtruth"] = {"path_length_m": truth.path_length(), "end_to_start_gap_m": evaluation.end_to_start_gap(truth)}
     result = IntegrationResult(motion, decoder, scale, grid, deadreckoning, metrics)
@@ -253,6 +318,7 @@ def integrate(
         "input": str(motion.path), "format": fmt, "decoder": decoder, "velocity_scale": velocity_scale,
         "resolved_velocity_scale": scale, "n_frames": n_frames, "noise_trans": noise_trans,
         "noise_rot_deg": noise_rot_deg, "seed": seed, "network_rotation_deg": network_rotation_deg, "network": params,
+        "step": options.step, "modules": options.modules, "heading": options.heading,
     })
     return replace(result, out_dir=folder, files=files)
 
@@ -264,12 +330,14 @@ def write_integration(folder: Path, result: IntegrationResult, config: dict) -> 
         "trajectory": write_tum(folder / "trajectory.tum", result.grid.trajectory),
         "deadreckoning": write_tum(folder / "deadreckoning.tum", result.deadreckoning.trajectory),
     }
+    if result.grid.gridcode is not None:
+        files["gridcode"] = write_tum(folder / "gridcode.tum", result.grid.gridcode)
     shown = {}
     truth = result.groundtruth
     if truth is not None:
         files["groundtruth"] = write_tum(folder / "groundtruth.tum", truth)
         shown["groundtruth"] = truth
-    shown |= {f"grid cells ({result.decoder})": result.grid.trajectory, "dead reckoning": result.deadreckoning.trajectory}
+    shown |= {f"grid cells ({result.grid.name})": result.grid.trajectory, "dead reckoning": result.deadreckoning.trajectory}
     files["metrics"] = write_json(folder / "metrics.json", result.metrics)
     files["config"] = write_config(folder / "config.json", config)
     files["plot"] = plot_trajectories(folder / "trajectories.png", shown, title=f"{result.motion.path.name}: grid cells vs dead reckoning")
@@ -278,7 +346,7 @@ def write_integration(folder: Path, result: IntegrationResult, config: dict) -> 
         files["error_plot"] = plot_series(
             folder / "error.png",
             {
-                f"grid cells ({result.decoder})": (stamps, error_over_time(result.grid.trajectory, truth)),
+                f"grid cells ({result.grid.name})": (stamps, error_over_time(result.grid.trajectory, truth)),
                 "dead reckoning": (stamps, error_over_time(result.deadreckoning.trajectory, truth)),
             },
             xlabel="time [s]", ylabel="position error [m]", title=f"{result.motion.path.name}: drift",
@@ -293,7 +361,7 @@ def integration_table(result: IntegrationResult) -> list[tuple[str, object, str]
     grid, dr = m["grid"], m["deadreckoning"]
     rows = [
         ("frames", m["input"]["frames"], ""),
-        ("decoder", result.decoder, ""),
+        ("decoder", result.grid.name, ""),
         ("velocity scale", result.velocity_scale, "network units/m"),
         ("saturated frames", m["saturations"], "frames"),
         ("median lattice shift", m["grid"]["median_shift_neurons"], "neurons/frame"),
@@ -316,7 +384,28 @@ def integration_table(result: IntegrationResult) -> list[tuple[str, object, str]
         ("grid endpoint difference from DR", grid["endpoint_difference_from_dr_m"], "m"),
         ("grid mean difference from DR", grid["mean_difference_from_dr_m"], "m"),
     ]
+    rows += _direction_rows(grid, "grid")
+    if "gridcode" in m:
+        rows += _gridcode_rows(m["gridcode"], "grid code")
     return rows
+
+
+def _gridcode_rows(metrics: dict, name: str) -> list[tuple[str, object, str]]:
+    rows = [(f"{name}: mean distance from the integrated position", metrics["mean_difference_from_integrated_m"], "m")]
+    if "endpoint_error_pct" in metrics:
+        rows += [(f"{name}: endpoint error", metrics["endpoint_error_pct"], "% of path"),
+                 (f"{name}: mean error", metrics["mean_error_pct"], "% of path")]
+    return rows
+
+
+def _direction_rows(metrics: dict, name: str) -> list[tuple[str, object, str]]:
+    rows = []
+    if "direction_rms_deg" in metrics:
+        rows += [(f"{name} direction vs input, rms", metrics["direction_rms_deg"], "deg/frame"),
+                 (f"{name} direction vs input, rms weighted by step", metrics["direction_weighted_rms_deg"], "deg/frame"),
+                 (f"{name} direction vs input, mean", metrics["direction_mean_deg"], "deg/frame")]
+    return rows + [(f"{name} heading vs summed yaw, end", metrics["heading_difference_end_deg"], "deg"),
+                   (f"{name} heading vs summed yaw, max", metrics["heading_difference_max_deg"], "deg")]
 
 
 # --- simulate ---------------------------------------------------------------------------------
@@ -377,14 +466,15 @@ def simulate(
     out: Path | None = None,
     results_root: Path = Path("results"),
     write: bool = True,
+    options: GridOptions = GridOptions(),
 ) -> SimulationResult:
     """The paper's simulation: a seeded random walk in the circle; every decoder and dead
     reckoning integrate the same (optionally noisy) odometry of its first `n_frames` frames;
     then the walk continued to `firing_frames` frames drives the network alone for the firing
     map of neuron (0, 0) and its gridness (0 frames: no firing map)."""
-    unknown = [name for name in decoders if name not in DECODERS]
+    unknown = [name for name in decoders if name not in DECODER_NAMES]
     if unknown or not decoders:
-        raise ConfigError(f"unknown decoder '{unknown[0] if unknown else ''}': choose from {', '.join(DECODERS)}")
+        raise ConfigError(f"unknown decoder '{unknown[0] if unknown else ''}': choose from {', '.join(DECODER_NAMES)}")
     if n_frames < 2:
         raise ConfigError(f"the simulation needs at least 2 frames, got {n_frames}")
     if firing_frames < 0:
@@ -399,7 +489,13 @@ def simulate(
     log.info("simulation: %d frames, %.1f m, velocity scale %.4g network units per metre", n_frames, walk.path_length(), scale)
     truth = clean.groundtruth
     deadreckoning = run_deadreckoning(motion)
-    runs = {name: run_grid(motion, name, scale, params) for name in decoders}
+    # The step source and modules need the calibrated decoder: the other decoders run with the
+    # defaults beside it; the heading model applies to all.
+    runs = {}
+    for name in decoders:
+        own = options if name == "calibrated" else replace(options, step="odometry", modules=1)
+        run = run_grid(motion, name, scale, params, own)
+        runs[run.name] = run
     metrics = {
         "walk": {
             "frames": n_frames, "seed": seed, "frame_period_s": walk_params.frame_period_s,
@@ -414,6 +510,8 @@ def simulate(
         metrics[name] = trajectory_metrics(run.trajectory, truth, deadreckoning.trajectory) | {
             "saturations": run.saturations, "ms_per_frame": 1000.0 * run.seconds / n_frames,
         } | run.shift_stats()
+        if run.gridcode is not None:
+            metrics[f"{name} gridcode"] = gridcode_metrics(run, truth, deadreckoning.trajectory)
     rate_map, score = None, None
     if firing_frames:
         firing_walk = long_walk.head(firing_frames)
@@ -431,7 +529,8 @@ def simulate(
         return result
     folder = results_dir(out, results_root)
     files = write_simulation(folder, result, config={
-        "n_frames": n_frames, "seed": seed, "decoders": list(decoders), "noise_trans": noise_trans,
+        "n_frames": n_frames, "seed": seed, "decoders": list(decoders), "step": options.step, "modules": options.modules,
+        "heading": options.heading, "noise_trans": noise_trans,
         "noise_rot_deg": noise_rot_deg, "velocity_scale": velocity_scale, "resolved_velocity_scale": scale,
         "firing_frames": firing_frames, "bin_m": bin_m, "walk": walk_params, "network": params,
     })
@@ -448,6 +547,8 @@ def write_simulation(folder: Path, result: SimulationResult, config: dict) -> di
     }
     for name, run in result.runs.items():
         files[f"trajectory_{name}"] = write_tum(folder / f"trajectory_{name}.tum", run.trajectory)
+        if run.gridcode is not None:
+            files[f"gridcode_{name}"] = write_tum(folder / f"gridcode_{name}.tum", run.gridcode)
     files["metrics"] = write_json(folder / "metrics.json", result.metrics)
     files["config"] = write_config(folder / "config.json", config)
     shown = {"groundtruth": truth} | {f"grid cells ({name})": run.trajectory for name, run in result.runs.items()}
@@ -487,7 +588,9 @@ def simulation_table(result: SimulationResult) -> list[tuple[str, object, str]]:
             (f"{name} mean error", m[name]["mean_error_pct"], "% of path"),
             (f"{name} saturated frames", m[name]["saturations"], "frames"),
             (f"{name} time per frame", m[name]["ms_per_frame"], "ms"),
-        ]
+        ] + _direction_rows(m[name], name)
+        if f"{name} gridcode" in m:
+            rows += _gridcode_rows(m[f"{name} gridcode"], f"{name} grid code")
     if "firing_map" in m:
         rows += [
             ("firing map frames", m["firing_map"]["frames"], ""),

@@ -18,7 +18,7 @@ from services.common.convert import image_to_msg, planar_pose
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.gridcells.config import GridCellsConfig
-from services.gridcells.integrator import DeadReckoning, GridCellIntegrator, auto_velocity_scale
+from services.gridcells.integrator import DeadReckoning, GridCellIntegrator, auto_velocity_scale, turn_first
 from services.gridcells.network import GridCellError, NetworkParams
 
 log = logging.getLogger(__name__)
@@ -37,8 +37,10 @@ def make_integrator(config: GridCellsConfig):
     params = NetworkParams(n=config.neurons)
     scale = (auto_velocity_scale(np.array([config.typical_speed]), params)
              if config.velocity_scale == "auto" else float(config.velocity_scale))
-    log.info("grid-cell network n=%d, decoder %s, velocity scale %.4g units/m", config.neurons, config.decoder, scale)
-    return GridCellIntegrator(params, decoder=config.decoder, velocity_scale=scale)
+    log.info("grid-cell network n=%d, decoder %s, step %s, %d module(s), heading %s, velocity scale %.4g units/m", config.neurons,
+             config.decoder, config.step, config.modules, config.heading, scale)
+    return GridCellIntegrator(params, decoder=config.decoder, velocity_scale=scale, step=config.step, modules=config.modules,
+                              heading=config.heading)
 
 
 def save_checkpoint(path: Path, checkpoint: dict, seq: int, stamp: float | None) -> None:
@@ -71,6 +73,9 @@ class GridCellsService(Service):
         super().__init__(runtime, instance)
         self.config = config
         self.integrator = make_integrator(config)
+        grid = config.integrator == "grid"
+        self.provenance = {"decoder": config.decoder if grid else None, "step_source": config.step if grid else "odometry",
+                           "heading_model": config.heading if grid else "sum", "modules": config.modules if grid else 0}
         self.frames = 0
         self.previous_stamp: float | None = None
         self.resumed_at: int | None = None   # frames up to this one are already integrated
@@ -89,7 +94,10 @@ class GridCellsService(Service):
         if max(abs(increment.forward), abs(increment.left)) > MAX_STEP_M or abs(increment.yaw) > MAX_TURN_RAD:
             raise GridCellError(f"increment (forward {increment.forward:.3g} m, left {increment.left:.3g} m, "
                                 f"yaw {increment.yaw:.3g} rad) exceeds {MAX_STEP_M:g} m or {MAX_TURN_RAD:.4g} rad per frame")
-        step = self.integrator.step(increment.forward, increment.left, increment.yaw)
+        # The message's translation is in the body frame before the frame's yaw (SE(2)
+        # composition, as the egomotion stage's own trajectory is integrated); the integrators
+        # turn first, then move (the authors' order).
+        step = self.integrator.step(*turn_first(increment.forward, increment.left, increment.yaw), increment.yaw)
         stamp = message.header.stamp.to_seconds()
         dt = stamp - self.previous_stamp if self.previous_stamp is not None else 0.0
         self.previous_stamp = stamp
@@ -98,7 +106,7 @@ class GridCellsService(Service):
         self.publish("grid/pose", GridPose(
             header=header, pose=planar_pose(step.pose.x, step.pose.y, step.pose.heading), twist=twist,
             heading=step.pose.heading, lattice_shift=step.shift, step_length=step.step_length,
-            saturated=step.saturated, integrator=self.config.integrator,
+            saturated=step.saturated, integrator=self.config.integrator, **self.provenance,
             increment_covariance=self.increment_covariance(message.covariance, step.step_length),
         ))
         if self.config.checkpoint is not None:
@@ -128,7 +136,10 @@ class GridCellsService(Service):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--step", choices=["odometry", "lattice"], help="step length from the ego-motion (default) or the lattice")
+    parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
+    parser.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
     parser.add_argument("--velocity-scale", help="network units per metre, or auto (default)")
     parser.add_argument("--preset", help="dataset preset (services/gridcells/presets/)")
     parser.add_argument("--checkpoint", type=Path, help="state file written every frame; a restart resumes from it")
@@ -136,6 +147,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(GridCellsConfig, "gridcells", preset=args.preset, config_file=args.config, overrides={
-        "integrator": args.integrator, "decoder": args.decoder, "velocity_scale": args.velocity_scale,
+        "integrator": args.integrator, "decoder": args.decoder, "step": args.step, "modules": args.modules,
+        "heading": args.heading, "velocity_scale": args.velocity_scale,
         "checkpoint": args.checkpoint})
     return GridCellsService(runtime, config, args.instance).run()

@@ -16,10 +16,12 @@ import zenoh
 from services.common import codec, health, topics
 from services.common.convert import heading_of, image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig, open_session
+from services.ros.messages import camera_jpeg, link_kind
 
 log = logging.getLogger(__name__)
 
-RECORDED_TOPICS = ("camera/frame", "egomotion", "grid/pose", "grid/activity", "view/template", "loop/closure", "map/pose")
+RECORDED_TOPICS = ("camera/frame", "egomotion", "grid/pose", "grid/activity", "view/template", "loop/closure", "map/pose",
+                   "map/update")
 
 
 @dataclass
@@ -36,6 +38,13 @@ class Recording:
     templates: dict[int, tuple[int, bool]] = field(default_factory=dict)
     closures: dict[int, tuple[int, int, int, int]] = field(default_factory=dict)   # frame → closure (once, if re-sent)
     lattices: dict[int, np.ndarray] = field(default_factory=dict)
+    # For run.mcap (services/ros): the left camera image as JPEG (at most CAMERA_MAX_WIDTH wide),
+    # the intrinsics of that JPEG (fx, fy, cx, cy, width, height), and the experience map's
+    # changes: (seq, experiences created or moved [(id, x, y)], links created [(source, target, kind)]).
+    camera_jpegs: dict[int, bytes] = field(default_factory=dict)
+    camera_model: tuple[float, float, float, float, int, int] | None = None
+    map_updates: list[tuple[int, list, list]] = field(default_factory=list)
+    camera_jpeg_s: float = 0.0   # time spent encoding them
     arrivals: dict[str, dict[int, float]] = field(default_factory=lambda: defaultdict(dict))
     decode_errors: int = 0
 
@@ -43,8 +52,9 @@ class Recording:
 class Recorder:
     """Subscribes to every pipeline topic of one robot and fills a Recording."""
 
-    def __init__(self, runtime: RuntimeConfig):
+    def __init__(self, runtime: RuntimeConfig, camera_images: bool = True):
         self.runtime = runtime
+        self.camera_images = camera_images   # keep each frame's left image as JPEG (for run.mcap)
         self.recording = Recording()
         self.lock = threading.Lock()
         self.session: zenoh.Session | None = None
@@ -101,12 +111,24 @@ class Recorder:
             return
         seq = message.header.seq
         r = self.recording
+        jpeg = model = None
+        if topic == "camera/frame" and self.camera_images:   # encoded before taking the lock
+            started = time.perf_counter()
+            jpeg, scale = camera_jpeg(image_from_msg(message.left), message.left.encoding)
+            info = message.camera_info
+            model = None if info is None else (info.fx * scale, info.fy * scale, info.cx * scale, info.cy * scale,
+                                               round(message.left.width * scale), round(message.left.height * scale))
+            encoding_s = time.perf_counter() - started
         with self.lock:
             r.arrivals[topic].setdefault(seq, arrival)
             if topic == "camera/frame":
                 r.stamps[seq] = message.header.stamp.to_seconds()
                 if message.ground_truth is not None:
                     r.ground_truth[seq] = pose_to_matrix(message.ground_truth)
+                if jpeg is not None:
+                    r.camera_jpegs[seq] = jpeg
+                    r.camera_model = model or r.camera_model
+                    r.camera_jpeg_s += encoding_s
             elif topic == "egomotion":
                 r.increments[seq] = (message.increment.forward, message.increment.left, message.increment.yaw)
             elif topic == "grid/pose":
@@ -120,3 +142,8 @@ class Recorder:
                 r.closures[message.frame] = (message.frame, message.matched_frame, message.matched_template, message.votes)
             elif topic == "grid/activity":
                 r.lattices[seq] = image_from_msg(message.image)
+            elif topic == "map/update":
+                r.map_updates.append((seq, [(e.id, e.x, e.y) for e in message.experiences],
+                                      [(link.source, link.target,
+                                        link_kind(link.loop_closure, getattr(link, "accepted", True)))
+                                       for link in message.links]))

@@ -30,8 +30,10 @@ from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
+from services.ros.foxglove import check_available as check_foxglove_available
+from services.ros.mcap_export import write_after_run
 from services.source.service import SourceConfig
-from services.source.spec import open_source
+from services.source.spec import bag_settings, open_source
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +63,11 @@ class RunConfig(BaseModel):
     egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
         None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
-    decoder: Literal["paper", "fft", "subpixel"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
+    decoder: Literal["paper", "fft", "subpixel", "calibrated"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
+    step_source: Literal["odometry", "lattice"] | None = Field(
+        None, description="Grid-cell step length from the ego-motion (default) or the calibrated lattice flow.")
+    modules: int | None = Field(None, ge=1, le=4, description="Grid modules (default 1).")
+    heading: Literal["sum", "ring"] | None = Field(None, description="Heading model: summed yaw (default) or a ring attractor.")
     preset: str | None = Field(
         None, description="Dataset preset passed to every service that has one, or a preset file (base preset and "
                           "per-service tables, docs/sources.md).")
@@ -86,6 +92,13 @@ class RunConfig(BaseModel):
     world: dict[str, int | float | bool | str] = Field(
         default_factory=dict, description="Synthetic world settings for the source (--laps, --world KEY=VALUE), over the "
                                           "preset's and the config file's [source] keys.")
+    mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
+    foxglove: int | None = Field(None, ge=0, le=65535, description="Also serve the run live to Foxglove on this port (loopback).")
+    image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
+    right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
+    camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
+    odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
+    stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
 
 
 @dataclass
@@ -245,8 +258,13 @@ def service_args(config: RunConfig, name: str, folder: Path) -> list[str]:
     if name == "gridcells":
         args += ["--integrator", config.integrator, "--checkpoint", str(folder / GRID_CHECKPOINT)]
         args += ["--decoder", config.decoder] if config.decoder else []
+        args += ["--step", config.step_source] if config.step_source else []
+        args += ["--modules", str(config.modules)] if config.modules else []
+        args += ["--heading", config.heading] if config.heading else []
     if name == "viewer":
         args += ["--http", config.view]
+    if name == "foxglove":
+        args += ["--port", str(config.foxglove)]
     if name == "loopclosure":
         args += ["--store", str(folder / TEMPLATE_LOG)]
     if name == "expmap":
@@ -270,6 +288,8 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
         args += ["--calibration", str(config.calibration)]
     for key, value in config.world.items():
         args += ["--world", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
+    for key, value in bag_settings(config).items():
+        args += [f"--{key.replace('_', '-')}", str(value)] if value is not None else []
     return args + (["--stop", str(stop)] if stop is not None else [])
 
 
@@ -277,7 +297,8 @@ def source_settings(config: RunConfig) -> SourceConfig:
     """The source's settings as its service will resolve them: the config file's [source] under
     the run's flags."""
     return load_config(SourceConfig, "source", config_file=config.config_file, overrides={
-        "source": config.source, "preset": config.preset, "calibration": config.calibration, **config.world})
+        "source": config.source, "preset": config.preset, "calibration": config.calibration, **config.world,
+        **bag_settings(config)})
 
 
 def log_preset(config: RunConfig, services: list[str]) -> None:
@@ -305,12 +326,16 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     stop_event = stop_event or threading.Event()
     if config.connect is None:
         check_port_free(config.listen)
+    if config.foxglove is not None:   # fail now, in one line, rather than lose the live view quietly
+        check_foxglove_available()
+        if config.foxglove:
+            check_port_free(f"tcp/127.0.0.1:{config.foxglove}")
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     stages = ["egomotion", "gridcells"] + (["loopclosure", "expmap"] if config.mapping else [])
     log_preset(config, ["source", *stages])
     settings = source_settings(config)
     frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=settings.preset,
-                         calibration=settings.calibration, world=settings.world())
+                         calibration=settings.calibration, world=settings.world(), topics=bag_settings(settings))
     total = None if getattr(frames, "live", False) else len(frames)
     folder = results_dir(out)
     write_config(folder / "config.json", config)
@@ -322,10 +347,10 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         if config.connect is None:
             router = supervisor.start("router", ["router", "--listen", config.listen])
             wait_port_open(config.listen, router.process)
-        for name in stages + (["viewer"] if config.view else []):
+        for name in stages + (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []):
             supervisor.start(name, service_args(config, name, folder))
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
-        with Recorder(runtime) as recorder:
+        with Recorder(runtime, camera_images=config.mcap) as recorder:
             _wait_for_services(supervisor, recorder, stages)
             supervisor.start("source", source_args(config, config.start, ack_topic))
             _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
@@ -344,6 +369,8 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         recording.map_decisions = experience_map.decisions
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
     result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
+    if config.mcap:
+        result["summary"]["run_mcap"] = write_after_run(folder, recording, trajs, config)
     write_report(folder, recording, result, trajs)
     return RunResult(folder, result)
 

@@ -42,7 +42,8 @@ from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.topics import TOPICS
 from services.source.frames import Frame, FrameSource, planar_motion
-from services.source.spec import add_world_arguments, open_source, parse_world_flags, world_keys
+from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
+                                  parse_world_flags, world_keys)
 from services.source.synthetic import WorldConfig
 
 log = logging.getLogger(__name__)
@@ -61,9 +62,10 @@ class _SourceSettings(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    source: str = Field(description="What to read: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
+    source: str = Field(description="What to read: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
+                                    "rosbag:PATH.")
     preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic, campus, "
-                                                  "or a preset file (docs/sources.md).")
+                                                  "irat, or a preset file (docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
     mono: bool = Field(False, description="Publish only the left image of a stereo source.")
     start: int = Field(0, ge=0, description="First frame index.")
@@ -93,6 +95,11 @@ class _SourceSettings(BaseModel):
         False, description="Before the first frame, ask the running services for the last frame they have all handled "
                            "and start there (sent again first), in its lap when looping: a source restarted in a running "
                            "pipeline goes on where it is. Datasets, video files and the synthetic world.")
+    image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
+    right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
+    camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
+    odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
+    stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
 
     def world(self) -> dict[str, Any]:
         """The synthetic world settings given here (they override the preset's)."""
@@ -340,8 +347,9 @@ class SourceService(Service):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N or synthetic:SEED")
-    parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, or a preset file")
+    parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or "
+                                         "rosbag:PATH")
+    parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, irat, or a preset file")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file")
     parser.add_argument("--mono", action="store_true", default=None, help="publish only the left image")
     parser.add_argument("--start", type=int, help="first frame index")
@@ -359,13 +367,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--resume", action="store_true", default=None,
                         help="start where the running services are (a source restarted mid-run)")
     add_world_arguments(parser)
+    add_bag_arguments(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> SourceConfig:
     """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
-    (world settings from --laps and --world KEY=VALUE)."""
+    (world settings from --laps and --world KEY=VALUE, a ROS bag's topics from --image-topic ...)."""
     fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
-              "resend_after", "loop", "wait_for", "resume")
+              "resend_after", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
     return load_config(SourceConfig, "source", config_file=args.config,
                        overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
 
@@ -373,5 +382,6 @@ def config_from_args(args: argparse.Namespace) -> SourceConfig:
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = config_from_args(args)
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
-                         calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world())
+                         calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world(),
+                         topics=bag_settings(config))
     return SourceService(runtime, config, frames, args.instance).run()

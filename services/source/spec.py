@@ -6,13 +6,15 @@
     video:FILE      video file OpenCV decodes (datasets.VideoFile)
     camera:N        live camera N (or a device path / stream URL), newest frame only (camera.LiveCamera)
     synthetic:SEED  procedural world rendered on the fly (synthetic.SyntheticWorld)
+    rosbag:PATH     ROS 1 .bag, or ROS 2 bag folder / .db3 / .mcap file (rosbag.RosbagSource; extra `ros`)
 
 A preset (``services/source/presets/<name>.toml``) is a flat TOML table of calibration keys
-(calibration.py) and source settings (``fps``, ``grey``, and for the synthetic world the fields
-of ``synthetic.WorldConfig``); a preset file of one's own gives its ``[source]`` table over its
-base's (services/common/config.py). An explicit calibration (a file of our format or a Camera)
-wins over the preset's, and either wins over the dataset's own; ``world`` settings win over
-the preset's.
+(calibration.py) and source settings (``fps``, ``grey``, the topics of a ROS bag, and for the
+synthetic world the fields of ``synthetic.WorldConfig``); a preset file of one's own gives its
+``[source]`` table over its base's (services/common/config.py). An explicit calibration (a file
+of our format or a Camera) wins over the preset's, and either wins over the dataset's own;
+``world`` settings win over the preset's. A preset describes a dataset however it is stored:
+its bag topics are ignored by the other kinds (St Lucia is a video and a bag).
 """
 
 from __future__ import annotations
@@ -27,9 +29,31 @@ from services.source.calibration import CALIBRATION_KEYS, camera_from_mapping, r
 from services.source.frames import Camera, FrameSource, SourceError
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
-KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic")
+KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag")
+# The settings of a ROS bag (rosbag.RosbagSource): preset keys, config keys and flags of the same
+# names, shared by `gridslam run`, `odometry` and the source service.
+BAG_FLAG_HELP = {
+    "image_topic": "ROS bag: image topic, sensor_msgs/Image or CompressedImage (default: the bag's only one)",
+    "right_image_topic": "ROS bag: right image topic of a stereo pair, matched by stamp",
+    "camera_info_topic": "ROS bag: sensor_msgs/CameraInfo topic (default: the image topic's camera_info)",
+    "odom_topic": "ROS bag: nav_msgs/Odometry topic (passthrough estimator; ground truth where the run has none)",
+    "stereo_tolerance": "ROS bag: seconds between the stamps of a stereo pair, at most (default 0.005)",
+}
 # Source settings a preset may hold besides the calibration, with their types.
-SETTINGS: dict[str, type] = {"fps": float, "grey": bool}
+SETTINGS: dict[str, type] = {"fps": float, "grey": bool,
+                             **{key: float if key == "stereo_tolerance" else str for key in BAG_FLAG_HELP}}
+
+
+def add_bag_arguments(parser) -> None:
+    """The ROS bag flags (--image-topic, ...) on an argparse parser; the defaults are None."""
+    for key, help_text in BAG_FLAG_HELP.items():
+        parser.add_argument(f"--{key.replace('_', '-')}", type=float if key == "stereo_tolerance" else str,
+                            metavar="S" if key == "stereo_tolerance" else "TOPIC", help=help_text)
+
+
+def bag_settings(values) -> dict:
+    """The ROS bag settings of an argparse namespace or a config model (None where not given)."""
+    return {key: getattr(values, key, None) for key in BAG_FLAG_HELP}
 
 
 def preset_names() -> list[str]:
@@ -142,12 +166,15 @@ def open_source(
     mono: bool = False,
     origin: int | None = None,
     world: Mapping[str, Any] | None = None,
+    topics: dict[str, str | float | None] | None = None,
 ) -> FrameSource:
     """Open the source named by ``spec`` (module docstring) with frames ``start:stop:step``.
 
     ``mono`` drops the right image of stereo sources (less to read for monocular estimators).
     ``origin``: the frame whose pose is the ground truth's origin (default: the first selected).
     ``world``: synthetic world settings (``world_keys()``) over the preset's.
+    ``topics``: a ROS bag's settings (BAG_FLAG_HELP's keys), over the preset's; None values are
+    left to the preset.
     Raises SourceError (bad spec or data) or ConfigError (bad preset) with one line naming the file.
     """
     kind, target = parse_spec(spec)
@@ -160,6 +187,8 @@ def open_source(
             if kind != "synthetic":
                 raise ConfigError(f"world key {key!r} applies to the synthetic world only, not to {spec}")
             settings[key] = check_setting(key, value, keys[key], "world settings")
+    bag = {key: settings.pop(key) for key in BAG_FLAG_HELP if key in settings}
+    bag.update({key: value for key, value in (topics or {}).items() if value is not None})
     if isinstance(calibration, Camera):
         camera = calibration
     elif calibration is not None:
@@ -168,7 +197,8 @@ def open_source(
         camera = preset_camera
     grey = settings.pop("grey", False)
     fps = settings.pop("fps", None)
-    if kind != "synthetic" and settings:
+    # A bag may be a recording of the synthetic world: the world's keys then describe what it holds.
+    if kind not in ("synthetic", "rosbag") and settings:
         raise ConfigError(f"preset {preset}: key {next(iter(settings))!r} applies to the synthetic world only")
     selection = dict(start=start, stop=stop, step=step)
     if kind in ("kitti", "stereo", "images"):
@@ -183,6 +213,13 @@ def open_source(
         from services.source.datasets import VideoFile
 
         return VideoFile(target, camera=camera, fps=fps, grey=grey, **selection)
+    if kind == "rosbag":
+        from services.source.rosbag import RosbagSource
+
+        unknown = sorted(set(bag) - set(BAG_FLAG_HELP))
+        if unknown:
+            raise ConfigError(f"unknown ROS bag setting {unknown[0]!r}")
+        return RosbagSource(target, camera=camera, grey=grey, mono=mono, origin=origin, **bag, **selection)
     if kind == "camera":
         from services.source.camera import LiveCamera
 

@@ -23,7 +23,7 @@ from statistics import median
 import cv2
 import numpy as np
 
-from services.gridcells.integrator import DeadReckoning
+from services.gridcells.integrator import DeadReckoning, turn_first
 
 STAGES = ("ground_truth", "egomotion", "grid", "map")
 LATENCY_SAMPLES = 20        # latency shown is the median of the last this many frames
@@ -141,12 +141,13 @@ class ViewerState:
 
     # ----------------------------------------------------------------- inputs
     def on_egomotion(self, seq: int, forward: float, left: float, yaw: float, now: float) -> None:
-        """An ego-motion increment (body frame); dead-reckoned the way the gridcells baseline does."""
+        """An ego-motion increment (body frame, SE(2): the translation before the yaw);
+        dead-reckoned the way the gridcells baseline does (turned for its turn-first order)."""
         track = self.tracks["egomotion"]
         restarted = track.restart_if_older(seq)
         if restarted:
             self._dead_reckoning = DeadReckoning()
-        pose = self._dead_reckoning.step(forward, left, yaw).pose
+        pose = self._dead_reckoning.step(*turn_first(forward, left, yaw), yaw).pose
         track.add(seq, pose.x, pose.y, pose.heading)
         self._saw_frame(seq, now, restarted)
 

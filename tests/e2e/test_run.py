@@ -69,7 +69,5 @@ def test_two_robots_share_one_router_with_separate_topics(tmp_path):
         metrics = json.loads((tmp_path / robot / "metrics.json").read_text())
         gridcells = metrics["stages"]["gridcells"]
         # Mixed topics would interleave two worlds' frames: stale drops, gaps and a wrong path.
-        # (Dead reckoning turns before it moves, as the paper's integrator does; the ground
-        # truth's odometry moves along the chord, hence the sub-millimetre residual.)
         assert gridcells["frames"] == FRAMES and gridcells["ate_se2"]["rmse"] < 1e-3
         assert metrics["services"]["gridcells"]["stale"] == 0 and metrics["services"]["gridcells"]["gaps"] == 0

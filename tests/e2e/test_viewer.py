@@ -31,8 +31,8 @@ import pytest
 import zenoh
 
 from schemas import (
-    CameraFrame, EgoMotion, Experience, Header, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, PlanarIncrement, Time,
-    ViewTemplate,
+    CameraFrame, EgoMotion, Experience, Header, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, PlanarIncrement,
+    ServiceStatus, Time, ViewTemplate,
 )
 from services.common import codec, topics
 from services.common.convert import image_to_msg, matrix_to_pose, planar_pose
@@ -333,6 +333,9 @@ return {
   lattice_caption: document.getElementById('lattice-caption').textContent,
   services: [...document.querySelectorAll('#health tbody tr')].map((row) => row.children[1].textContent),
   loop_closures: document.getElementById('loop-closures').textContent,
+  // [scrollWidth, clientWidth] of the side panel and of the page: equal when nothing scrolls sideways.
+  aside_width: [document.querySelector('aside').scrollWidth, document.querySelector('aside').clientWidth],
+  page_width: [document.documentElement.scrollWidth, window.innerWidth],
 };
 """
 
@@ -370,6 +373,24 @@ def test_browser_shows_the_run(world, tmp_path):
         png = browser.screenshot()
         target.write_bytes(png)
         assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
+        # A long run's widest row: an eleven-letter service, a host-pid instance, seven-digit counters.
+        wide = ServiceStatus(header=Header(seq=0, stamp=Time.from_seconds(time.time())), service="loopclosure",
+                             instance="robot-computer-123456", state="running", received=1234567, published=1234567,
+                             decode_errors=0, gaps=0, stale=0, uptime=12345.6)
+        pipeline.session.put(topics.status_key("robot0", "loopclosure", wide.instance), codec.encode(wide),
+                             encoding=codec.encoding_of(ServiceStatus))
+        wide_page = wait_for(lambda: (p := browser.script(PAGE)) and "loopclosure" in p["services"] and p, timeout=10, period=0.2)
+        # The services table fits the 1400-pixel window: no horizontal scroll bar.
+        assert wide_page["aside_width"][0] <= wide_page["aside_width"][1], wide_page
+        assert wide_page["page_width"][0] <= wide_page["page_width"][1], wide_page
+        # The run is over and the viewer stops (as `gridslam run --view` stops it): the page keeps
+        # its last images, even when a newer revision is asked for after the viewer has gone.
+        stop(pipeline.viewer)
+        browser.script("loadImage(document.getElementById('camera'), 'camera.jpg?r=999999');"
+                       "loadImage(document.getElementById('lattice'), 'lattice.png?r=999999');")
+        time.sleep(1.0)
+        after = browser.script(PAGE)
+        assert after["lattice"] == 64 and after["camera"] == 320, after
     finally:
         run.halt.set()
         if browser is not None:

@@ -97,3 +97,31 @@ def test_auto_scale_follows_the_documented_rule():
     speeds = np.r_[np.zeros(50), np.linspace(0.01, 0.1, 100)]  # standing frames are ignored
     expected = TARGET_SHIFT / (0.383 * 2.0 * 50 * np.percentile(np.linspace(0.01, 0.1, 100), 95))
     assert auto_velocity_scale(speeds) == pytest.approx(expected)
+
+
+def test_se2_increments_turned_for_the_integrator_give_the_se2_path():
+    """EgoMotion increments move in the body frame before the frame's yaw (SE(2) composition);
+    turn_first turns them so that the integrators (turn, then move) follow the same path."""
+    from services.evaluation.trajectory import integrate_increments
+    from services.gridcells.integrator import turn_first
+
+    rng = np.random.default_rng(0)
+    forward, left, yaw = rng.uniform(0.05, 0.15, 50), rng.normal(0, 0.01, 50), rng.normal(0, 0.1, 50)
+    truth = integrate_increments(forward, left, yaw)
+    odometry = DeadReckoning()
+    for f, l, y in zip(forward, left, yaw):
+        step = odometry.step(*turn_first(f, l, y), y)
+    assert (step.pose.x, step.pose.y) == pytest.approx(tuple(truth.positions[-1, :2]), abs=1e-12)
+
+
+def test_ring_heading_drives_the_integrator_and_survives_a_checkpoint():
+    integrator = GridCellIntegrator(velocity_scale=10.0, heading="ring")
+    for _ in range(10):
+        step = integrator.step(0.01, 0.0, math.radians(2))
+    assert step.pose.heading == pytest.approx(math.radians(20), abs=math.radians(0.05))
+    saved = integrator.checkpoint()
+    expected = integrator.step(0.01, 0.0, 0.01)
+    other = GridCellIntegrator(velocity_scale=10.0, heading="ring")
+    other.restore(saved)
+    again = other.step(0.01, 0.0, 0.01)
+    assert (again.pose.x, again.pose.y, again.pose.heading) == pytest.approx((expected.pose.x, expected.pose.y, expected.pose.heading), abs=1e-9)

@@ -110,3 +110,44 @@ def test_bad_parameters_are_config_errors():
         NetworkParams(n=31)
     with pytest.raises(ConfigError, match="tau"):
         NetworkParams(tau=0.0)
+
+
+def _backends():
+    from services.gridcells.network import fft_backend
+
+    return ["scipy"] + (["fftw"] if fft_backend() == "fftw" else [])
+
+
+@pytest.mark.parametrize("backend", _backends())
+@pytest.mark.parametrize("lam", [18.0, 18.0 / 1.4, 18.0 / 1.96])
+def test_fast_stack_follows_the_float64_network(backend, lam):
+    """NetworkStack (float32, band-limited rank-one product, input on the zero-frequency bin)
+    runs the same dynamics as GridNetwork to float32 precision: on the rank-one path (λ < 18
+    at n = 64) and on the full 4×4 product (λ = 18 at n = 64: the small sheet truncates the
+    kernel, so the rank-one form does not hold)."""
+    from services.gridcells.network import NetworkStack
+
+    params = NetworkParams(n=64, lam=lam)
+    reference = GridNetwork(params, dtype=np.float64)
+    stack = NetworkStack(params, backend=backend)
+    for velocity in ((0.04, 0.02), (-0.03, 0.05), (0.0, 0.0)):
+        expected = reference.run(velocity)
+        field = stack.run(velocity)[0]
+    assert np.max(np.abs(field - expected)) < 2e-5 * np.max(expected)
+    assert np.max(np.abs(stack.state[0] - reference.state)) < 2e-5 * np.max(reference.state)
+
+
+def test_stack_modules_run_side_by_side_with_their_own_velocities():
+    from services.gridcells.network import NetworkStack
+
+    modules = (NetworkParams(n=32, settle_steps=60, envelope_steps=40), NetworkParams(n=32, lam=14.0, alpha=1.5, settle_steps=60, envelope_steps=40))
+    stack = NetworkStack(modules)
+    singles = [NetworkStack(p) for p in modules]
+    velocities = np.array([[0.03, -0.01], [-0.02, 0.04]])
+    fields = stack.run(velocities)
+    for k, single in enumerate(singles):
+        assert np.allclose(fields[k], single.run(velocities[k])[0], atol=1e-6)
+    with pytest.raises(GridCellError, match="shape"):
+        stack.run(np.zeros((3, 2)))
+    with pytest.raises(ConfigError, match="share n"):
+        NetworkStack((NetworkParams(n=32), NetworkParams(n=64)))

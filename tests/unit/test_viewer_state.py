@@ -45,14 +45,15 @@ def status(decode_errors=0, gaps=0):
 
 
 # ---------------------------------------------------------------------- trajectories
-def test_egomotion_is_dead_reckoned_heading_first():
+def test_egomotion_is_dead_reckoned_as_se2_increments():
     state = ViewerState()
     for seq, (forward, yaw) in enumerate([(1.0, 0.0), (1.0, math.pi / 2), (1.0, 0.0)]):
         state.on_egomotion(seq, forward, 0.0, yaw, now=seq * 0.1)
     track = as_json(state, now=1.0)["tracks"]["egomotion"]
-    # heading += yaw, then the step along the new heading (as the gridcells baseline integrates).
-    assert track["points"] == [[1.0, 0.0], [1.0, 1.0], [1.0, 2.0]]
-    assert track["pose"][:2] == [1.0, 2.0] and track["pose"][2] == pytest.approx(math.pi / 2, abs=1e-4)
+    # The step along the heading before the frame's yaw, then the yaw (the EgoMotion message's
+    # SE(2) increment, as the gridcells service and the run's evaluation compose it).
+    assert track["points"] == [[1.0, 0.0], [2.0, 0.0], [2.0, 1.0]]
+    assert track["pose"][:2] == [2.0, 1.0] and track["pose"][2] == pytest.approx(math.pi / 2, abs=1e-4)
 
 
 def test_ground_truth_is_shown_planar():

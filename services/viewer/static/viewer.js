@@ -90,24 +90,35 @@ function showCounters(c, connected) {
 }
 
 // Image endpoints are fetched one at a time per <img>: a new revision while one is loading
-// waits for it, so a slow link never piles up requests.
-function loadImage(img, url) {
+// waits for it, so a slow link never piles up requests. Each image is fetched into a blob: URL,
+// so what was shown stays on the page when the viewer is gone (the run ended) and a fetch that
+// fails keeps the previous image instead of a broken one.
+async function loadImage(img, url) {
   if (img.dataset.loading === "1") {
     img.dataset.pending = url;
     return;
   }
   img.dataset.loading = "1";
-  img.src = url;
-}
-for (const img of [$("lattice"), $("camera")]) {
-  img.onload = img.onerror = () => {
-    img.dataset.loading = "0";
-    const pending = img.dataset.pending;
-    if (pending) {
-      img.dataset.pending = "";
-      loadImage(img, pending);
+  try {
+    const response = await fetch(url, { cache: "no-store" });
+    if (response.status === 200) {
+      const shown = URL.createObjectURL(await response.blob());
+      await new Promise((resolve) => {
+        img.onload = img.onerror = resolve;
+        img.src = shown;
+      });
+      if (img.dataset.blob) URL.revokeObjectURL(img.dataset.blob);
+      img.dataset.blob = shown;
     }
-  };
+  } catch (error) {
+    // The viewer is unreachable: keep the last image.
+  }
+  img.dataset.loading = "0";
+  const pending = img.dataset.pending;
+  if (pending) {
+    img.dataset.pending = "";
+    loadImage(img, pending);
+  }
 }
 
 function showLattice(grid, lattice) {

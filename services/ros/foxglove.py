@@ -1,0 +1,238 @@
+"""foxglove: a Foxglove WebSocket server republishing a run live, from Zenoh, as ROS 2 messages.
+
+Open Foxglove (the desktop app or the web app) → "Open connection" → Foxglove WebSocket →
+ws://127.0.0.1:8765. The topics, types and frames are those of run.mcap (messages.py), so a
+layout made for a recorded run works on a live one. The server is the official `foxglove-sdk`
+(extra `foxglove`): channels with ROS 2 message definitions (`ros2msg`) and CDR payloads.
+
+Like the viewer this is an observer: it never pushes back on the pipeline. Its inbox is deep
+and a full one drops the sample (counted as `dropped_busy` in its status); camera frames and
+lattice snapshots are taken newest-only; the SDK keeps a bounded queue per browser and drops a
+slow browser's oldest messages. Loopback by default: `--host` elsewhere needs `--allow-remote`
+(the protocol has no authentication).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import time
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+
+from schemas import CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate
+from services.common import codec, topics
+from services.common.config import load_config
+from services.common.convert import image_from_msg, pose_to_matrix
+from services.common.errors import ConfigError
+from services.common.runtime import RuntimeConfig
+from services.common.service import Service
+from services.ros.messages import TOPICS, MapState, RosMessages, camera_jpeg, link_kind, typestore
+from services.viewer.config import is_loopback
+from services.viewer.state import planar_from_camera
+
+log = logging.getLogger(__name__)
+
+INBOX_SIZE = 4096   # as the viewer's: pose messages are small, newest-only topics queue a marker only
+
+
+def check_available() -> None:
+    """ConfigError (one line) when the extras the server needs are missing."""
+    typestore()
+    try:
+        import foxglove  # noqa: F401
+    except ImportError:
+        raise ConfigError("the Foxglove server needs the optional extra 'foxglove': "
+                          "pip install 'gridslam[foxglove]'") from None
+
+
+class FoxgloveConfig(BaseModel):
+    """Configuration of the foxglove service (table `[foxglove]`, env `GRIDSLAM_FOXGLOVE_*`)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    allow_remote: bool = Field(False, description="Allow a non-loopback `host` (the Foxglove protocol has no authentication).")
+    host: str = Field("127.0.0.1", description="Address the WebSocket server binds to.")
+    port: int = Field(8765, ge=0, le=65535, description="WebSocket port (Foxglove's default 8765; 0: any free port).")
+    map_rate_hz: float = Field(1.0, gt=0, le=30, description="Experience-map MarkerArrays sent per second, at most.")
+    backlog: int = Field(1024, ge=16, description="Messages queued per browser; a slow browser loses its oldest.")
+
+    @field_validator("host")
+    @classmethod
+    def _loopback(cls, value: str, info: ValidationInfo) -> str:
+        if not info.data.get("allow_remote") and not is_loopback(value):
+            raise ValueError(f"{value} is not a loopback address; the Foxglove protocol has no authentication, so "
+                             "serving other machines needs --allow-remote (allow_remote = true)")
+        return value
+
+
+class FoxgloveService(Service):
+    name = "foxglove"
+    observer = True
+    inbox_size = INBOX_SIZE
+
+    def __init__(self, runtime: RuntimeConfig, config: FoxgloveConfig, instance: str | None = None):
+        super().__init__(runtime, instance)
+        self.config = config
+        check_available()
+        import foxglove
+
+        self.ros = RosMessages()
+        self.context = foxglove.Context()
+        self.channels = {
+            topic: foxglove.Channel(topic, message_encoding="cdr", context=self.context,
+                                    schema=foxglove.Schema(name=msgtype, encoding="ros2msg", data=self.ros.msgdef(msgtype).encode()))
+            for topic, msgtype in TOPICS.items()}
+        try:   # bound now: a busy port is an error before anything starts
+            self.server = foxglove.start_server(name=f"gridslam {runtime.robot}", host=config.host, port=config.port,
+                                                context=self.context, message_backlog_size=config.backlog)
+        except RuntimeError as error:
+            raise ConfigError(f"foxglove: cannot serve on {config.host}:{config.port}: "
+                              f"{str(error).removeprefix('FoxgloveError: ')}") from None
+        self.sent = 0
+        self.map_state = MapState()
+        self.map_pending: int | None = None     # stamp of a map change not sent yet
+        self.map_sent_at = 0.0
+        self.dead_reckoning: tuple[float, float, float] | None = None   # egomotion dead-reckoned (x, y, heading)
+        self.egomotion_seq = -1
+        self._snapshot: MapSnapshot | None = None   # the map as fetched at start, until the main thread applies it
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.config.host if ':' not in self.config.host else f'[{self.config.host}]'}:{self.server.port}"
+
+    def setup(self) -> None:
+        # drop_stale=False: a seq going backwards is a new run, shown afresh (as the viewer does).
+        self.subscribe("egomotion", self.on_egomotion, drop_stale=False)
+        self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
+        self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
+        self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
+        self.subscribe("loop/closure", self.on_loop_closure, drop_stale=False, sparse=True)
+        self.subscribe("camera/frame", self.on_camera_frame, newest_only=True, drop_stale=False)
+        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
+        # A map already built when this service starts: fetch it once (map/update then keeps it).
+        self.session.get(topics.key(self.robot, "map/snapshot"), self._on_snapshot, timeout=5.0)
+        log.info("foxglove serving %s", self.url)
+
+    def teardown(self) -> None:
+        self.server.stop()
+
+    def on_idle(self) -> None:
+        self._take_snapshot()
+        self._send_map_if_due()
+
+    def extra_counters(self) -> dict[str, float]:
+        return {**super().extra_counters(), "messages_sent": self.sent}
+
+    # ----------------------------------------------------------------- pipeline topics (main thread)
+    def _log(self, stamp: int, *messages: tuple[str, bytes]) -> None:
+        for topic, data in messages:
+            self.channels[topic].log(data, log_time=stamp)
+            self.sent += 1
+
+    @staticmethod
+    def _stamp(message) -> int:
+        stamp = message.header.stamp
+        return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+    def on_egomotion(self, message: EgoMotion) -> None:
+        # Dead reckoning of the increments as egomotion.tum has it (integrate_increments: the
+        # step along the heading before the increment's own yaw).
+        seq = message.header.seq
+        if self.dead_reckoning is None or seq <= self.egomotion_seq:
+            self.dead_reckoning = (0.0, 0.0, 0.0)
+        self.egomotion_seq = seq
+        x, y, heading = self.dead_reckoning
+        step = message.increment
+        x += math.cos(heading) * step.forward - math.sin(heading) * step.left
+        y += math.sin(heading) * step.forward + math.cos(heading) * step.left
+        heading = math.remainder(heading + step.yaw, math.tau)
+        self.dead_reckoning = (x, y, heading)
+        stamp = self._stamp(message)
+        self._log(stamp, *self.ros.planar_pose("egomotion", stamp, x, y, heading))
+
+    def on_grid_pose(self, message: GridPose) -> None:
+        stamp = self._stamp(message)
+        self._log(stamp, *self.ros.planar_pose("gridcells", stamp, message.pose.position.x, message.pose.position.y,
+                                               message.heading))
+
+    def on_map_pose(self, message: MapPose) -> None:
+        stamp = self._stamp(message)
+        self._log(stamp, *self.ros.planar_pose("map", stamp, message.pose.position.x, message.pose.position.y,
+                                               message.heading))
+
+    def on_map_update(self, message: MapUpdate) -> None:
+        self._take_snapshot()
+        if self._apply_map(message.experiences, message.links):
+            self.map_pending = self._stamp(message)
+        self._send_map_if_due()
+
+    def on_loop_closure(self, message: LoopClosure) -> None:
+        stamp = self._stamp(message)
+        fields = message.model_dump(exclude={"header", "schema_version"})
+        self._log(stamp, self.ros.closure(stamp, fields))
+
+    def on_camera_frame(self, message: CameraFrame) -> None:
+        stamp = self._stamp(message)
+        jpeg, scale = camera_jpeg(image_from_msg(message.left), message.left.encoding)
+        messages = [self.ros.camera_image(stamp, jpeg), self.ros.static_transforms(stamp)]
+        info = message.camera_info
+        if info is not None:
+            messages.append(self.ros.camera_info(stamp, info.fx * scale, info.fy * scale, info.cx * scale,
+                                                 info.cy * scale, round(message.left.width * scale),
+                                                 round(message.left.height * scale)))
+        if message.ground_truth is not None:
+            messages += self.ros.planar_pose("groundtruth", stamp, *planar_from_camera(pose_to_matrix(message.ground_truth)))
+        self._log(stamp, *messages)
+
+    def on_grid_activity(self, message: GridActivity) -> None:
+        stamp = self._stamp(message)
+        pixels = image_from_msg(message.image)
+        if pixels.ndim == 3:
+            pixels = pixels.mean(axis=2)
+        self._log(stamp, self.ros.activity(stamp, pixels))
+
+    # ----------------------------------------------------------------- the map
+    def _apply_map(self, experiences, links) -> bool:
+        return self.map_state.apply(
+            [(e.id, e.x, e.y) for e in experiences],
+            [(link.source, link.target, link_kind(link.loop_closure, getattr(link, "accepted", True))) for link in links])
+
+    def _send_map_if_due(self) -> None:
+        now = time.monotonic()
+        if self.map_pending is None or now - self.map_sent_at < 1.0 / self.config.map_rate_hz:
+            return
+        stamp, self.map_pending, self.map_sent_at = self.map_pending, None, now
+        self._log(stamp, self.ros.markers(stamp, self.map_state))
+
+    def _take_snapshot(self) -> None:
+        snapshot, self._snapshot = self._snapshot, None
+        if snapshot is not None and self._apply_map(snapshot.experiences, snapshot.links):
+            self.map_pending = self._stamp(snapshot)
+
+    def _on_snapshot(self, reply) -> None:   # a Zenoh thread: the main thread applies it (_take_snapshot)
+        if reply.ok is None:
+            return
+        try:
+            snapshot = codec.decode(reply.ok.payload.to_bytes(), MapSnapshot, str(reply.ok.encoding))
+        except codec.CodecError as error:
+            self.counters.decode_errors += 1
+            log.warning("foxglove: dropped map snapshot: %s", error)
+            return
+        self._snapshot = snapshot
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, help="WebSocket port (default 8765; 0: any free port)")
+    parser.add_argument("--allow-remote", action="store_true", default=None,
+                        help="allow a non-loopback --host (the Foxglove protocol has no authentication)")
+
+
+def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
+    config = load_config(FoxgloveConfig, "foxglove", config_file=args.config,
+                         overrides={"host": args.host, "port": args.port, "allow_remote": args.allow_remote})
+    service = FoxgloveService(runtime, config, args.instance)
+    print(f"gridslam foxglove: {service.url}", flush=True)
+    return service.run()

@@ -1,0 +1,284 @@
+"""`run.mcap`: a whole run as one MCAP file of ROS 2 messages (CDR), which Foxglove opens and
+`ros2 bag play` replays. Written by `gridslam run` and `demo` at the end of a run from what the
+runner recorded (`content_from_recording`), and again by `gridslam export mcap RESULTS_DIR`
+from a results folder (`content_from_folder`). Every message is stamped (header and MCAP log
+time) with its frame's source stamp; messages are written in stamp order.
+
+The topics and frames are those of messages.py. The experience map is a MarkerArray written
+when the map changed, at most once per MARKER_PERIOD_S seconds of the run's time, and once
+more with the final map.
+"""
+
+from __future__ import annotations
+
+import heapq
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from itertools import count
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from services.common.errors import DataError, GridslamError
+from services.evaluation.trajectory import Trajectory, read_tum
+from services.ros.messages import (
+    CAMERA_MAX_WIDTH, STAGES, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
+)
+
+log = logging.getLogger(__name__)
+
+MCAP_NAME = "run.mcap"
+MARKER_PERIOD_S = 1.0
+# Stage of messages.STAGES → the stem of its TUM file in a results folder (report.py):
+# /gridslam/map is the pose expmap published at each frame.
+STAGE_FILES = {"egomotion": "egomotion", "gridcells": "gridcells", "map": "map_online", "groundtruth": "groundtruth"}
+CHUNK_BYTES = 4 * 1024 * 1024
+
+
+class McapExportError(DataError):
+    """A results folder that cannot be exported (the message names the file)."""
+
+
+@dataclass
+class RunContent:
+    """What run.mcap holds, every item with its source stamp in seconds and in stamp order."""
+
+    trajectories: dict[str, Trajectory]                    # stage of messages.STAGES → poses
+    images: Iterable[tuple[float, bytes]] = ()             # left camera image, JPEG
+    camera_model: tuple | None = None                      # (fx, fy, cx, cy, width, height) of the JPEGs
+    lattices: Iterable[tuple[float, np.ndarray]] = ()      # grid-cell activity, uint8
+    map_updates: Iterable[tuple[float, list, list]] = ()   # (experiences [(id, x, y)], links [(source, target, kind)])
+    closures: list[tuple[float, dict]] = field(default_factory=list)
+    metadata: dict[str, str] = field(default_factory=dict)
+
+
+def content_from_recording(recording, trajectories: dict[str, Trajectory], metadata: dict[str, str] | None = None) -> RunContent:
+    """The content of a run from the runner's Recording (services/pipeline/recorder.py) and the
+    trajectories evaluated from it (report.trajectories)."""
+    stamps = recording.stamps
+
+    def stamped(items: dict):
+        return [(stamps[seq], items[seq]) for seq in sorted(items) if seq in stamps]
+
+    return RunContent(
+        trajectories={stage: trajectories[name] for stage, name in STAGE_FILES.items() if name in trajectories},
+        images=stamped(recording.camera_jpegs),
+        camera_model=recording.camera_model,
+        lattices=stamped(recording.lattices),
+        map_updates=[(stamps[seq], experiences, links) for seq, experiences, links in recording.map_updates if seq in stamps],
+        closures=[(stamps[frame], {"frame": frame, "matched_frame": matched, "matched_template": template, "votes": votes})
+                  for frame, matched, template, votes in recording.closures.values() if frame in stamps],
+        metadata=metadata or {},
+    )
+
+
+def write_after_run(folder: Path, recording, trajectories: dict[str, Trajectory], config) -> dict | None:
+    """FOLDER/run.mcap at the end of `gridslam run` (runner.py); what it cost, for metrics.json.
+    Without the extra `ros`: one warning, no file, None."""
+    started = time.perf_counter()
+    metadata = {"source": config.source, "robot": config.robot, "preset": config.preset or ""}
+    try:
+        counts = write_run_mcap(Path(folder) / MCAP_NAME, content_from_recording(recording, trajectories, metadata))
+    except RosUnavailable as error:
+        log.warning("%s; no %s written", error, MCAP_NAME)
+        return None
+    return {"file": MCAP_NAME, "bytes": (Path(folder) / MCAP_NAME).stat().st_size, "messages": sum(counts.values()),
+            "write_s": time.perf_counter() - started, "camera_jpeg_s": recording.camera_jpeg_s}
+
+
+def write_run_mcap(path: Path, content: RunContent) -> dict[str, int]:
+    """Write `content` as an MCAP file of ROS 2 messages; returns the message count per topic."""
+    try:
+        from mcap.writer import CompressionType, Writer
+    except ImportError:
+        raise RosUnavailable("writing MCAP needs the optional extra 'ros': pip install 'gridslam[ros]'") from None
+    ros = RosMessages()
+    counts: dict[str, int] = {}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("wb") as stream:
+        writer = Writer(stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)
+        writer.start(profile="ros2", library="gridslam")
+        channels: dict[str, int] = {}
+        schemas: dict[str, int] = {}
+        for number, (stamp, topic, data) in enumerate(_messages(ros, content)):
+            channel = channels.get(topic)
+            if channel is None:
+                msgtype = TOPICS[topic]
+                if msgtype not in schemas:
+                    schemas[msgtype] = writer.register_schema(msgtype, "ros2msg", ros.msgdef(msgtype).encode())
+                channel = channels[topic] = writer.register_channel(topic, "cdr", schemas[msgtype])
+            writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp, sequence=number)
+            counts[topic] = counts.get(topic, 0) + 1
+        if content.metadata:
+            writer.add_metadata("gridslam", {key: str(value) for key, value in content.metadata.items()})
+        writer.finish()
+    log.info("wrote %s: %d messages on %d topics", path, sum(counts.values()), len(counts))
+    return counts
+
+
+def _messages(ros: RosMessages, content: RunContent) -> Iterator[tuple[int, str, bytes]]:
+    """Every message of the run, (stamp ns, topic, CDR bytes), in stamp order. Each stream is
+    serialised lazily as the merge reaches it, so only one message per stream is in memory."""
+    tie = count()   # keeps the merge stable and never compares payloads
+
+    def stream(items):
+        for stamp, topic, data in items:
+            yield stamp, next(tie), topic, data
+
+    streams = [stream(_poses(ros, content.trajectories)), stream(_images(ros, content))]
+    streams.append(stream((stamp_ns(stamp), *ros.activity(stamp_ns(stamp), pixels)) for stamp, pixels in content.lattices))
+    streams.append(stream(_markers(ros, content.map_updates)))
+    streams.append(stream((stamp_ns(stamp), *ros.closure(stamp_ns(stamp), fields)) for stamp, fields in content.closures))
+    first = min((float(t.stamps[0]) for t in content.trajectories.values() if len(t)), default=0.0)
+    streams.append(stream([(stamp_ns(first), *ros.static_transforms(stamp_ns(first)))]))
+    for stamp, _, topic, data in heapq.merge(*streams):
+        yield stamp, topic, data
+
+
+def _poses(ros: RosMessages, trajectories: dict[str, Trajectory]):
+    """Every stage's Odometry at each stamp, and one /tf message per stamp for all of them."""
+    at: dict[int, list] = {}
+    for stage, trajectory in trajectories.items():
+        for stamp, position, orientation in zip(trajectory.stamps, trajectory.positions, trajectory.quaternions):
+            at.setdefault(stamp_ns(float(stamp)), []).append((stage, position, orientation))
+    for nanoseconds in sorted(at):
+        for topic, data in ros.poses(nanoseconds, at[nanoseconds]):
+            yield nanoseconds, topic, data
+
+
+def _images(ros: RosMessages, content: RunContent):
+    for stamp, jpeg in content.images:
+        nanoseconds = stamp_ns(stamp)
+        yield (nanoseconds, *ros.camera_image(nanoseconds, jpeg))
+        if content.camera_model is not None:
+            yield (nanoseconds, *ros.camera_info(nanoseconds, *content.camera_model))
+
+
+def _markers(ros: RosMessages, updates: Iterable[tuple[float, list, list]]):
+    """The map after its updates: when it changed, at most once per MARKER_PERIOD_S, and at the end."""
+    state, last_written, pending = MapState(), None, None
+    for stamp, experiences, links in updates:
+        if state.apply(experiences, links):
+            pending = stamp
+        if pending is not None and (last_written is None or stamp - last_written >= MARKER_PERIOD_S):
+            yield (stamp_ns(stamp), *ros.markers(stamp_ns(stamp), state))
+            last_written, pending = stamp, None
+    if pending is not None:
+        yield (stamp_ns(pending), *ros.markers(stamp_ns(pending), state))
+
+
+# --------------------------------------------------------------------------- from a results folder
+def content_from_folder(folder: Path, images: bool = True) -> RunContent:
+    """The content of a run from its results folder: the TUM files of the stages, the map
+    journal replayed frame by frame, the closures of metrics.json, and the camera images read
+    again from the run's source (config.json) when `images` and the source is still there.
+    The grid-cell activity is not in a results folder, so an export has none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise McapExportError(f"{folder}: no such results folder")
+    trajectories = {stage: read_tum(folder / f"{name}.tum") for stage, name in STAGE_FILES.items()
+                    if (folder / f"{name}.tum").is_file()}
+    if not trajectories:
+        raise McapExportError(f"{folder}: no trajectory (*.tum) of a gridslam run")
+    config = _read_json(folder / "config.json")
+    map_log = _map_log(folder)
+    frame_stamps = {step.frame: step.stamp for step in map_log.steps} if map_log is not None else {}
+    closures = []
+    for closure in (_read_json(folder / "metrics.json").get("summary", {}).get("loop_closures") or []):
+        if closure.get("frame") in frame_stamps:
+            closures.append((frame_stamps[closure["frame"]], closure))
+    content = RunContent(trajectories=trajectories, map_updates=_journal_updates(map_log) if map_log is not None else (),
+                         closures=closures, metadata={"source": str(config.get("source", "")), "exported_from": str(folder)})
+    if images and config.get("source"):
+        content.images, content.camera_model = _source_images(config)
+    return content
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise McapExportError(f"{path}: not readable JSON ({error})") from None
+
+
+def _map_log(folder: Path):
+    from services.pipeline.runner import MAP_LOG
+
+    if not (folder / MAP_LOG).is_file():
+        return None
+    from services.expmap.export import read_log
+
+    return read_log(folder / MAP_LOG)
+
+
+def _journal_updates(map_log) -> Iterator[tuple[float, list, list]]:
+    """The map after its frames, replayed from its journal: the map as it was published every
+    MARKER_PERIOD_S of the run's time, and the final map (as `map export` writes it) after the
+    last frame."""
+    from services.expmap.graph import ExperienceMap
+
+    experience_map = ExperienceMap(map_log.params)
+    last = None
+    for index, step in enumerate(map_log.steps):
+        step.apply(experience_map)
+        final = index == len(map_log.steps) - 1
+        if last is None or step.stamp - last >= MARKER_PERIOD_S or final:
+            state = experience_map.snapshot()
+            poses = experience_map.final_poses() if final else state.poses
+            last = step.stamp
+            yield (step.stamp, [(i, float(x), float(y)) for i, (x, y, _) in enumerate(poses)],
+                   [(link.source, link.target, link_kind(link.loop_closure, link.accepted)) for link in state.links])
+
+
+def _source_images(config: dict):
+    """The run's left camera images again, from its source (the run's config.json); ((), None)
+    when it cannot be read."""
+    from pydantic import ValidationError
+
+    from services.pipeline.runner import RunConfig
+    from services.source.spec import bag_settings, open_source
+
+    try:
+        run = RunConfig.model_validate(config)
+    except ValidationError as error:
+        log.warning("camera images left out: config.json is not a run's configuration (%s)",
+                    str(error).splitlines()[0])
+        return (), None
+    if run.source.startswith("camera:"):
+        log.warning("camera images left out: the run's source %s is a live camera", run.source)
+        return (), None
+    stop = run.start + run.n_frames * run.step if run.n_frames else None
+    try:
+        frames = open_source(run.source, start=run.start, stop=stop, step=run.step, preset=run.preset,
+                             calibration=run.calibration, mono=True, topics=bag_settings(run))
+    except GridslamError as error:   # a moved dataset: the export goes on without images
+        log.warning("camera images left out: the run's source %s cannot be read again (%s)", run.source, error)
+        return (), None
+    first = frames[0]
+    scale = min(1.0, CAMERA_MAX_WIDTH / first.left.shape[1])   # as camera_jpeg scales the image
+    camera = frames.camera
+    model = None if camera is None else (camera.fx * scale, camera.fy * scale, camera.cx * scale, camera.cy * scale,
+                                         round(first.left.shape[1] * scale), round(first.left.shape[0] * scale))
+
+    def images():
+        with frames:
+            for frame in frames:
+                yield frame.stamp, camera_jpeg(frame.left, _encoding(frame.left))[0]
+
+    return images(), model
+
+
+def _encoding(image: np.ndarray) -> str:
+    return "bgr8" if image.ndim == 3 else "mono8"
+
+
+def export_mcap(folder: Path, out: Path | None = None, images: bool = True) -> tuple[Path, dict[str, int]]:
+    """`gridslam export mcap`: write FOLDER/run.mcap (or `out`) again from the results folder."""
+    path = Path(out) if out is not None else Path(folder) / MCAP_NAME
+    return path, write_run_mcap(path, content_from_folder(folder, images))
