@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from services.common.errors import DataError
 
@@ -110,9 +109,12 @@ class Trajectory:
 
     def rotations(self) -> np.ndarray:
         """Rotation matrices (N, 3, 3), body to world."""
-        if len(self) == 0:
-            return np.zeros((0, 3, 3))
-        return Rotation.from_quat(self.quaternions).as_matrix()
+        x, y, z, w = self.quaternions.T   # unit length (the constructor normalises them)
+        return np.stack([
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=-1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=-1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=-1),
+        ], axis=-2)
 
     def matrices(self) -> np.ndarray:
         """Homogeneous transforms (N, 4, 4), body to world."""
@@ -146,9 +148,29 @@ class Trajectory:
 
 
 def _quaternions_from_rotations(rotations: np.ndarray) -> np.ndarray:
-    # scipy projects a slightly non-orthonormal matrix (text files, float error) onto the
-    # nearest rotation before converting.
-    return Rotation.from_matrix(rotations).as_quat()
+    """Unit quaternions (N, 4) x, y, z, w of rotation matrices (N, 3, 3), by Shepperd's method:
+    for each matrix, from the largest of its trace and diagonal entries, so that the divisor is
+    never small. A matrix a little off orthonormal (rounded in a text file) gives the normalised
+    quaternion of a rotation within that error of it."""
+    r = rotations
+    trace = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
+    largest = np.argmax(np.stack([trace, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1), axis=1)
+    q = np.empty((len(r), 4))
+    for k in range(4):   # k = 0: w is largest; k = 1, 2, 3: x, y or z is
+        m = r[largest == k]
+        if k == 0:
+            q[largest == k] = np.stack([m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1],
+                                        1 + m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]], axis=1)
+            continue
+        i = k - 1
+        j, l = (i + 1) % 3, (i + 2) % 3
+        part = np.empty((len(m), 4))
+        part[:, i] = 1 + m[:, i, i] - m[:, j, j] - m[:, l, l]
+        part[:, j] = m[:, j, i] + m[:, i, j]
+        part[:, l] = m[:, l, i] + m[:, i, l]
+        part[:, 3] = m[:, l, j] - m[:, j, l]
+        q[largest == k] = part
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 # --- conventions ----------------------------------------------------------------------------

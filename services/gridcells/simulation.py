@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
-from scipy import ndimage
 
 
 @dataclass(frozen=True)
@@ -119,6 +118,8 @@ def firing_map(positions: np.ndarray, activity: np.ndarray, extent_m: float, bin
     """Rate map of one neuron: the activity summed per bin divided by the occupancy, both
     smoothed with a Gaussian of `smooth_bins` bins first; bins never visited are NaN. The
     map covers [-extent_m, extent_m]² around the origin, rows along y, columns along x."""
+    from scipy import ndimage   # here, not at the top: the container image has no scipy.ndimage (docs/deploy.md)
+
     n_bins = int(math.ceil(2 * extent_m / bin_m))
     edges = np.linspace(-extent_m, extent_m, n_bins + 1)
     occupancy, _, _ = np.histogram2d(positions[:, 0], positions[:, 1], bins=(edges, edges))
@@ -178,6 +179,8 @@ def gridness(rate: np.ndarray) -> Gridness:
     central peak excluded), correlate it with itself rotated by 30°, 60°, 90°, 120° and 150°,
     and score min(r60, r120) − max(r30, r90, r150). Hexagonal maps score high (up to 2),
     square and irregular ones low or negative."""
+    from scipy import ndimage   # as in firing_map
+
     ac = autocorrelogram(rate)
     cy, cx = (np.array(ac.shape) - 1) / 2.0
     yy, xx = np.indices(ac.shape)

@@ -113,7 +113,11 @@ class IndexedSource:
         return self._read(self._seqs[operator.index(i)])
 
     def __iter__(self) -> Iterator[Frame]:
-        for seq in self._seqs:
+        return self.iterate()
+
+    def iterate(self, first: int = 0) -> Iterator[Frame]:
+        """Iteration from the `first`-th selected frame on (a source resuming mid-run)."""
+        for seq in self._seqs[first:]:
             try:
                 frame = self._read(seq)
             except SourceError as error:
@@ -389,9 +393,9 @@ class VideoFile(IndexedSource):
             self._capture.set(cv2.CAP_PROP_POS_FRAMES, seq)
         return self._decode(seq)
 
-    def __iter__(self) -> Iterator[Frame]:
+    def iterate(self, first: int = 0) -> Iterator[Frame]:
         failures = 0
-        for seq in self._seqs:
+        for seq in self._seqs[first:]:
             if seq < self._position or seq - self._position > self.MAX_GRABS:
                 self._capture.set(cv2.CAP_PROP_POS_FRAMES, seq)  # seek when far away, grab when close
                 self._position = seq

@@ -11,11 +11,19 @@ With `wait_for`, the first frame waits until those services' health tokens are o
 source starts again at its first frame after its last, for ever (a demo that keeps running):
 `seq` and the stamps go on from the last lap's, so the pipeline sees one long run through the
 same world and keeps building the same map.
+
+With `resume`, a source restarted in a running pipeline (a container brought back by its
+restart policy) goes on where the pipeline is, instead of at its first frame, which every stage
+has handled and would drop: before its first frame it asks the running services for their
+status, and starts at the last frame they have all handled (the smallest `seq` of those that
+handled one), sending it again first as `gridslam run` does when it restarts its source; a
+looping source goes on in that frame's lap.
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
 import collections
 import dataclasses
 import logging
@@ -29,7 +37,7 @@ from schemas import CameraFrame, CameraInfo, PlanarIncrement
 from schemas.base import Message
 from services.common.config import load_config
 from services.common.convert import image_to_msg, matrix_to_pose
-from services.common.health import live_services
+from services.common.health import live_services, statuses
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.topics import TOPICS
@@ -45,6 +53,7 @@ WAIT_LOG_PERIOD_S = 10.0   # how often a source stalled on its window says so
 # the frames in flight: every client rejoins within its retry period (runtime.py: at most 0.5 s),
 # so the re-sent frames find all consumers back, not only the first one to reconnect.
 RECONNECT_SETTLE_S = 0.5
+RESUME_QUERY_S = 2.0       # how long a resuming source waits for the services' status replies
 
 
 class _SourceSettings(BaseModel):
@@ -82,6 +91,10 @@ class _SourceSettings(BaseModel):
     wait_for: list[str] = Field(
         default_factory=list, description="Services whose health tokens must all be on the network before the first "
                                           "frame (e.g. egomotion, gridcells, loopclosure, expmap).")
+    resume: bool = Field(
+        False, description="Before the first frame, ask the running services for the last frame they have all handled "
+                           "and start there (sent again first), in its lap when looping: a source restarted in a running "
+                           "pipeline goes on where it is. Datasets, video files and the synthetic world.")
     image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
     right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
     camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
@@ -147,6 +160,7 @@ class SourceService(Service):
         self.first: Frame | None = None             # the first frame of the source, and the last one read
         self.last: Frame | None = None
         self.seq_offset, self.stamp_offset = 0, 0.0  # added to the frames of the current lap
+        self.resume_checked = False
 
     def setup(self) -> None:
         if self.window:
@@ -200,6 +214,8 @@ class SourceService(Service):
         if self.sent == 0 and not (self._pipeline_ready() and self._subscribers_ready()):
             self._pause(0.05)
             return
+        if self.sent == 0 and self.config.resume and not self.resume_checked:
+            self._resume()
         frame = self._next_frame()
         if frame is None:
             self.finished = True
@@ -232,17 +248,46 @@ class SourceService(Service):
             frame = dataclasses.replace(frame, odometry=planar_motion(previous.ground_truth, frame.ground_truth))
         return dataclasses.replace(frame, seq=frame.seq + self.seq_offset, stamp=frame.stamp + self.stamp_offset)
 
-    def _new_lap(self) -> None:
-        """Go on from the first frame: seq and stamps continue one frame step after the last frame's."""
-        first, last = self.first, self.last
+    def _lap_length(self, first: Frame, last: Frame) -> tuple[int, float]:
+        """How far seq and the stamps go on per lap: to one frame step after the last frame's."""
         span = last.seq - first.seq
         step = self.config.step
-        self.seq_offset += span + step
-        self.stamp_offset += (last.stamp - first.stamp) * (span + step) / span if span else 0.0
+        return span + step, (last.stamp - first.stamp) * (span + step) / span if span else 0.0
+
+    def _new_lap(self) -> None:
+        """Go on from the first frame."""
+        seqs, stamps = self._lap_length(self.first, self.last)
+        self.seq_offset += seqs
+        self.stamp_offset += stamps
         self.laps += 1
         self.iterator = iter(self.frames)
         log.info("source: lap %d done (%d frames sent); starting lap %d at seq %d", self.laps, self.sent, self.laps + 1,
-                 first.seq + self.seq_offset)
+                 self.first.seq + self.seq_offset)
+
+    def _resume(self) -> None:
+        """Start at the last frame every running service has handled (module docstring)."""
+        self.resume_checked = True
+        handled = {status.header.seq for status in statuses(self.session, self.robot, timeout=RESUME_QUERY_S)
+                   if status.service != self.name and status.received > 0}
+        if not handled:
+            log.info("source: no running service has handled a frame; starting at the first")
+            return
+        seq = min(handled)
+        if not hasattr(self.frames, "iterate"):
+            log.warning("source: the running services have handled frame %d, but this source cannot start mid-run; "
+                        "starting at its first frame", seq)
+            return
+        if self.config.loop:   # the lap of that frame, and the offsets of seq and stamps in it
+            self.first, last = self.frames[0], self.frames[len(self.frames) - 1]
+            lap_seqs, lap_stamps = self._lap_length(self.first, last)
+            self.laps = max(seq - self.first.seq, 0) // lap_seqs
+            self.seq_offset, self.stamp_offset = self.laps * lap_seqs, self.laps * lap_stamps
+        index = bisect.bisect_left(self.frames.seqs, seq - self.seq_offset)
+        if self.config.loop and index == len(self.frames):   # past the lap's last frame: the next lap comes
+            self.last = last
+        self.iterator = self.frames.iterate(index)
+        log.info("source: the running services have all handled frame %d; resuming there (lap %d, frame %d of %d)",
+                 seq, self.laps + 1, index, len(self.frames))
 
     def _resend(self, reason: str) -> None:
         if self.live:   # old frames of a live camera are worth nothing: make room for the newest
@@ -319,6 +364,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop", action="store_true", default=None, help="start again at the first frame after the last, for ever")
     parser.add_argument("--wait-for", type=lambda text: [name.strip() for name in text.split(",") if name.strip()],
                         help="services whose health tokens must be up before the first frame, comma separated")
+    parser.add_argument("--resume", action="store_true", default=None,
+                        help="start where the running services are (a source restarted mid-run)")
     add_world_arguments(parser)
     add_bag_arguments(parser)
 
@@ -327,7 +374,7 @@ def config_from_args(args: argparse.Namespace) -> SourceConfig:
     """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
     (world settings from --laps and --world KEY=VALUE, a ROS bag's topics from --image-topic ...)."""
     fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
-              "resend_after", "loop", "wait_for", *BAG_FLAG_HELP)
+              "resend_after", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
     return load_config(SourceConfig, "source", config_file=args.config,
                        overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
 

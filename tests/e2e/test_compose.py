@@ -29,6 +29,7 @@ import zenoh
 from services.cli.service import SERVICES
 from services.common import codec, topics
 from services.common.runtime import RuntimeConfig, open_session
+from services.common.service import REPLAY_FRAMES
 from tests.netutil import REPO, endpoint, free_port, port_open, start, stop, wait_for
 from tests.tlsutil import CLIENT_MTLS, client_runtime, make_certs, tls_endpoint
 
@@ -226,9 +227,9 @@ def test_compose_resolves_to_the_documented_topology(compose):
 
     for name in ("source", "source-b"):
         assert volumes_of(services[name])["/data"][1], "the dataset must be mounted read-only"
-    for name in ("loopclosure", "loopclosure-b", "expmap", "expmap-b"):
+    for name in ("gridcells", "gridcells-b", "loopclosure", "loopclosure-b", "expmap", "expmap-b"):
         assert volumes_of(services[name])["/results"] == ("results", False)
-    stores = [value for key, value in robot_env.items() if key.endswith("_STORE")]
+    stores = [value for key, value in robot_env.items() if key.endswith(("_STORE", "_CHECKPOINT"))]
     assert stores and all(value.startswith("/results/robot0/") for value in stores)
     assert ("127.0.0.1", 8080, 8080) in ports_of(services["viewer"])
     assert ("127.0.0.1", 8081, 8080) in ports_of(services["viewer-b"])
@@ -368,6 +369,34 @@ def mounted_config(shipped: Path, certs: Path, role: str, out: Path) -> Path:
     return out
 
 
+def start_local_router(tmp_path: Path, secure: bool):
+    """The router container's command on a loopback port (with `secure`, that of
+    deploy/compose/secure.yml: mutual TLS and deploy/acl/router.json5), once it accepts
+    connections: (router, its endpoint, an observer's runtime, own_env(env, service) giving a
+    service's environment, with secure.yml's Zenoh config and the service's own certificate)."""
+    port = free_port()
+    if secure:
+        certs = make_certs(tmp_path / "certs")
+        acl = mounted_config(REPO / "deploy" / "acl" / "router.json5", certs, "router", tmp_path / "router.json5")
+        router = start(["router", "--listen", tls_endpoint(port, "127.0.0.1"), "--zenoh-config", str(acl)])
+        connect = tls_endpoint(port)
+        observer_runtime = client_runtime(port, CLIENT_MTLS, certs, "observer")
+
+        def own_env(env: dict[str, str], name: str) -> dict[str, str]:
+            config = mounted_config(CLIENT_MTLS, certs, name, tmp_path / f"{name}.json5")
+            return {**env, "GRIDSLAM_RUNTIME_ZENOH_CONFIG": str(config)}
+    else:
+        router = start(["router", "--listen", endpoint(port), "--zenoh-config", str(REPO / "deploy" / "router.json5")])
+        connect = endpoint(port)
+        observer_runtime = RuntimeConfig(connect=[connect])
+
+        def own_env(env: dict[str, str], name: str) -> dict[str, str]:
+            return dict(env)
+    wait_for(lambda: port_open(port) or router.poll() is not None)
+    assert router.poll() is None, router.communicate()[1]
+    return router, connect, observer_runtime, own_env
+
+
 @pytest.mark.parametrize("secure", [False, True], ids=["tcp", "mutual-tls-acl"])
 def test_compose_topology_runs_as_local_processes(tmp_path, secure):
     """docker-compose.yml (and with `secure`, deploy/compose/secure.yml) as local processes: each
@@ -378,23 +407,10 @@ def test_compose_topology_runs_as_local_processes(tmp_path, secure):
         pytest.skip(f"`gridslam service` does not offer {', '.join(missing)} yet")
     robot_env = read_env_file(ROBOT_ENV)
     robot = robot_env["GRIDSLAM_RUNTIME_ROBOT"]
-    port = free_port()
-    # The router container's command, on a loopback port.
-    if secure:
-        certs = make_certs(tmp_path / "certs")
-        acl = mounted_config(REPO / "deploy" / "acl" / "router.json5", certs, "router", tmp_path / "router.json5")
-        router = start(["router", "--listen", tls_endpoint(port, "127.0.0.1"), "--zenoh-config", str(acl)])
-        connect = tls_endpoint(port)
-        observer_runtime = client_runtime(port, CLIENT_MTLS, certs, "observer")
-    else:
-        router = start(["router", "--listen", endpoint(port), "--zenoh-config", str(REPO / "deploy" / "router.json5")])
-        connect = endpoint(port)
-        observer_runtime = RuntimeConfig(connect=[connect])
+    router, connect, observer_runtime, own_env = start_local_router(tmp_path, secure)
     processes = {}
     session = None
     try:
-        wait_for(lambda: port_open(port) or router.poll() is not None)
-        assert router.poll() is None, router.communicate()[1]
         session = open_session(observer_runtime.model_copy(update={"robot": robot}))
         poses: list[int] = []
         lock = threading.Lock()
@@ -406,10 +422,7 @@ def test_compose_topology_runs_as_local_processes(tmp_path, secure):
 
         env = local_environment(robot_env, connect, tmp_path / "results")
         for name in PIPELINE:   # each container's command: `gridslam service NAME`, settings from the environment
-            own = dict(env)
-            if secure:   # secure.yml's two variables, and this service's own certificate
-                own["GRIDSLAM_RUNTIME_ZENOH_CONFIG"] = str(mounted_config(CLIENT_MTLS, certs, name, tmp_path / f"{name}.json5"))
-            processes[name] = start(["service", name], env=own, cwd=tmp_path)
+            processes[name] = start(["service", name], env=own_env(env, name), cwd=tmp_path)
 
         def all_frames_mapped():
             crashed = {name: p.returncode for name, p in processes.items() if name != "source" and p.poll() is not None}
@@ -426,6 +439,71 @@ def test_compose_topology_runs_as_local_processes(tmp_path, secure):
         stop(router)
     for name, (code, _, err) in results.items():
         assert code == 0, f"{name}: {err[-2000:]}"
-    # The journals went where robot.env puts them on the results volume.
-    stores = [Path(value) for name, value in env.items() if name.endswith("_STORE")]
+    # The journals and the checkpoint went where robot.env puts them on the results volume.
+    stores = [Path(value) for name, value in env.items() if name.endswith(("_STORE", "_CHECKPOINT"))]
     assert stores and all(path.is_relative_to(tmp_path / "results" / robot) and path.is_file() for path in stores), stores
+
+
+LAP = 20   # frames per lap of the looping source in the restart test
+
+
+@pytest.mark.parametrize("secure", [False, True], ids=["tcp", "mutual-tls-acl"])
+def test_a_source_killed_mid_run_comes_back_where_the_pipeline_is(tmp_path, secure):
+    """The compose topology as local processes, the source looping laps of LAP frames as the
+    default stack does: the source killed with SIGKILL once its first frames are older than what
+    the services keep to answer a re-sent frame, and started again with the same command (the
+    container's restart policy), goes on where the pipeline is (no earlier frame comes again):
+    poses resume and cross into the next lap, and the map holds every frame once, in order,
+    stamps rising. With `secure`, through the router of deploy/compose/secure.yml (the source's
+    certificate may query the services' status)."""
+    robot_env = read_env_file(ROBOT_ENV)
+    assert robot_env.get("GRIDSLAM_SOURCE_RESUME") == "true" and robot_env.get("GRIDSLAM_SOURCE_LOOP") == "true"
+    robot = robot_env["GRIDSLAM_RUNTIME_ROBOT"]
+    router, connect, observer_runtime, own_env = start_local_router(tmp_path, secure)
+    env = {**local_environment(robot_env, connect, tmp_path / "results"),
+           "GRIDSLAM_SOURCE_STOP": str(LAP), "GRIDSLAM_SOURCE_LOOP": "true"}
+    processes, session, killed = {}, None, None
+    poses: list[int] = []
+    lock = threading.Lock()
+
+    def on_pose(sample: zenoh.Sample) -> None:
+        with lock:
+            poses.append(codec.decode(sample.payload.to_bytes(), encoding=str(sample.encoding)).header.seq)
+
+    def mapped_beyond(seq: int):
+        def check():
+            crashed = {name: p.returncode for name, p in processes.items() if p.poll() is not None}
+            assert not crashed, f"services exited: {crashed}"
+            with lock:
+                return bool(poses) and max(poses) >= seq
+        return check
+
+    try:
+        session = open_session(observer_runtime.model_copy(update={"robot": robot}))
+        subscriber = session.declare_subscriber(topics.key(robot, "map/pose"), on_pose)
+        for name in PIPELINE:
+            processes[name] = start(["service", name], env=own_env(env, name), cwd=tmp_path)
+        wait_for(mapped_beyond(REPLAY_FRAMES + 5), timeout=180, period=0.2)
+        killed = processes.pop("source")
+        killed.kill()
+        killed.wait(timeout=10)
+        with lock:
+            before, restarted_at = max(poses), len(poses)
+        processes["source"] = start(["service", "source"], env=own_env(env, "source"), cwd=tmp_path)
+        wait_for(mapped_beyond(before + LAP), timeout=120, period=0.2)
+        subscriber.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        results = {name: stop(process) for name, process in processes.items()}
+        stop(router)
+        if killed is not None:
+            stop(killed)
+    for name, (code, _, err) in results.items():
+        assert code == 0, f"{name}: {err[-2000:]}"
+    assert min(poses[restarted_at:]) >= before, "the restarted source sent frames the pipeline had handled"
+    records = [json.loads(line.rsplit("\t", 1)[0]) for line in
+               (tmp_path / "results" / robot / "experience_map.log").read_text().splitlines()[1:]]
+    frames = [record["frame"] for record in records]
+    assert frames == list(range(len(frames))) and frames[-1] >= before + LAP, "a frame is missing from the map, or there twice"
+    assert all(b > a for a, b in zip((r["stamp"] for r in records), (r["stamp"] for r in records[1:])))

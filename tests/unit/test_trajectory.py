@@ -174,3 +174,25 @@ def test_increments_round_trip_and_known_values():
 def test_integrate_increments_rejects_mismatched_lengths():
     with pytest.raises(DataError, match="differ in length"):
         integrate_increments([1, 2], [0], [0, 0])
+
+
+def test_quaternion_and_matrix_conversions_agree_with_scipy():
+    """numpy's conversions (the container image has no scipy.spatial) against scipy's Rotation,
+    on random rotations and half turns about each axis (where the trace is smallest)."""
+    from scipy.spatial.transform import Rotation
+
+    half_turns = Rotation.from_rotvec(np.pi * np.eye(3))
+    rotations = Rotation.concatenate([Rotation.random(500, random_state=4), half_turns, Rotation.identity(1)])
+    matrices = np.zeros((len(rotations), 4, 4))
+    matrices[:, :3, :3] = rotations.as_matrix()
+    matrices[:, 3, 3] = 1.0
+    traj = Trajectory.from_matrices(np.arange(len(rotations)), matrices)
+    ours = traj.quaternions
+    theirs = rotations.as_quat()
+    sign = np.sign(np.sum(ours * theirs, axis=1))   # q and -q are the same rotation
+    assert np.allclose(ours, sign[:, None] * theirs, atol=1e-12)
+    assert np.allclose(traj.rotations(), Rotation.from_quat(ours).as_matrix(), atol=1e-12)
+    # A matrix rounded as in a text file still gives a unit quaternion of a rotation next to it.
+    rounded = Trajectory.from_matrices(traj.stamps, np.round(matrices, 4))
+    assert np.allclose(np.linalg.norm(rounded.quaternions, axis=1), 1.0)
+    assert np.allclose(rounded.rotations(), traj.rotations(), atol=1e-3)
