@@ -71,6 +71,7 @@ def frames_for(width: int, height: int, fov_deg: float, baseline: float, count: 
 
 
 def frames_digest(frames: list[Frame]) -> str:
+    """A hash of the frames' images: the reference must time the very same frames."""
     return hashlib.sha1(b"".join(frame.left.tobytes() + frame.right.tobytes() for frame in frames)).hexdigest()
 
 

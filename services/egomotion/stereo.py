@@ -87,7 +87,7 @@ class StereoParams(NoiseModel):
     failure_motion: str = "zero"
 
     # Uncertainty per frame (base.NoiseModel): the synthetic world's per-frame errors at 0.1 m per
-    # frame are 1.4 mm forward, 1.6 mm left, 0.5 mrad yaw rms; these defaults are about twice that.
+    # frame are 1.3 mm forward, 1.6 mm left, 0.5 mrad yaw rms; these defaults are about twice that.
 
     def __post_init__(self) -> None:
         super().__post_init__()
