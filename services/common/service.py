@@ -205,9 +205,14 @@ class Service:
         self._send(topic, message)
         self.counters.published += 1
         if self._current_seq is not None:
-            self._outputs.setdefault(self._current_seq, []).append((topic, message))
-            while len(self._outputs) > REPLAY_FRAMES:
-                self._outputs.popitem(last=False)
+            self.remember_output(self._current_seq, topic, message)
+
+    def remember_output(self, seq: int, topic: str, message: Message) -> None:
+        """Publish `message` on `topic` again when input frame `seq` arrives again (`publish` does
+        this for what a handler publishes; a service restored from disk, for its last frame)."""
+        self._outputs.setdefault(seq, []).append((topic, message))
+        while len(self._outputs) > REPLAY_FRAMES:
+            self._outputs.popitem(last=False)
 
     def _send(self, topic: str, message: Message) -> None:
         self.publisher(topic).put(codec.encode(message))

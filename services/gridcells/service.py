@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from schemas import EgoMotion, GridActivity, GridPose, Twist, Vector3
+from services.common.codec import decode, encode
 from services.common.config import load_config
 from services.common.errors import DataError, PersistenceError
 from services.common.convert import image_to_msg, planar_pose
@@ -82,7 +83,12 @@ class GridCellsService(Service):
         self.resumed_at: int | None = None   # frames up to this one are already integrated
         if config.checkpoint is not None and config.checkpoint.exists():
             checkpoint, self.resumed_at, self.previous_stamp = load_checkpoint(config.checkpoint)
+            last_pose = checkpoint.pop("last_pose", None)
             self.integrator.restore(checkpoint)
+            if last_pose is not None:
+                # The pose of the checkpoint's frame may have died with the process that computed
+                # it: when that frame comes again, it is published again (Service.replay_outputs).
+                self.remember_output(self.resumed_at, "grid/pose", decode(last_pose.tobytes(), GridPose))
             log.info("gridcells resumed from %s after frame %d", config.checkpoint, self.resumed_at)
 
     def setup(self) -> None:
@@ -105,14 +111,18 @@ class GridCellsService(Service):
         self.previous_stamp = stamp
         twist = Twist(linear=Vector3(x=step.step_length / dt), angular=Vector3(z=increment.yaw / dt)) if dt > 0 else Twist()
         header = message.header.model_copy(update={"frame_id": "odom"})
-        self.publish("grid/pose", GridPose(
+        pose = GridPose(
             header=header, pose=planar_pose(step.pose.x, step.pose.y, step.pose.heading), twist=twist,
             heading=step.pose.heading, lattice_shift=step.shift, step_length=step.step_length,
             saturated=step.saturated, integrator=self.config.integrator, **self.provenance,
             increment_covariance=self.increment_covariance(message.covariance, step.step_length),
-        ))
+        )
         if self.config.checkpoint is not None:
-            save_checkpoint(self.config.checkpoint, self.integrator.checkpoint(), message.header.seq, stamp)
+            # Saved before the pose leaves: a restart then publishes it again when the frame comes again.
+            save_checkpoint(self.config.checkpoint, {**self.integrator.checkpoint(),
+                                                     "last_pose": np.frombuffer(encode(pose), np.uint8)},
+                            message.header.seq, stamp)
+        self.publish("grid/pose", pose)
         self.frames += 1
         every = self.config.activity_every
         if every and self.config.integrator == "grid" and self.frames % every == 0:

@@ -67,3 +67,17 @@ def test_run_flags_reach_the_gridcells_service(tmp_path):
         assert command[index:index + 2] == option
     with pytest.raises(SystemExit):
         parser.parse_args(["--step", "sideways"])
+
+
+def test_a_restart_publishes_the_checkpointed_frame_again_when_it_comes_again(tmp_path):
+    # A kill between the checkpoint and the pose leaving must not lose the frame's pose: the
+    # restored service publishes it again for the re-sent frame instead of taking it as done.
+    config = GridCellsConfig(typical_speed=0.1, checkpoint=tmp_path / "gridcells.checkpoint.npz")
+    first = poses_of(config, [(0.1, 0.0, 0.0), (0.1, 0.0, 0.02), (0.1, 0.001, 0.02)])
+    restarted = GridCellsService(RuntimeConfig(), config, "test")
+    assert restarted.resumed_at == 2
+    sent = []
+    restarted._send = lambda topic, message: sent.append((topic, message))
+    assert restarted.replay_outputs(1) == 0
+    assert restarted.replay_outputs(2) == 1
+    assert sent == [("grid/pose", first[-1])]
