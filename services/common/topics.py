@@ -41,8 +41,8 @@ def health_key(robot: str, service: str, instance: str) -> str:
 
 
 def shard_key(robot: str, service: str, instance: str, since: int | str) -> str:
-    """Liveliness token of an instance that takes a share of the frames (sharded egomotion):
-    it holds every frame from the one before `since` on (docs/pipeline.md)."""
+    """Liveliness token of an instance that takes a share of the frames (sharded egomotion): it
+    can run any block that starts at seq `since` or later, holding the frames before it (docs/pipeline.md)."""
     return f"{PREFIX}/{robot}/shard/{service}/{instance}/{since}"
 
 

@@ -193,7 +193,10 @@ def test_sharding_and_the_refusal_pass_access_control(gridcells, certs):
     client = ["-e", tls_endpoint(port), "--zenoh-config", str(CLIENT_MTLS)]
     second = start(["service", "gridcells", "--integrator", "deadreckoning", "--instance", "second", *client,
                     *cfg_flags(certs, "gridcells")])
-    _, err = second.communicate(timeout=60)
+    try:
+        _, err = second.communicate(timeout=60)
+    finally:
+        stop(second)   # still running if it was not refused
     assert second.returncode == 1 and f"gridcells of robot {ROBOT} is already running (instance {instance})" in err, err
 
     estimators = [start(["service", "egomotion", "--estimator", "passthrough", "--instance", name, *client,
