@@ -306,6 +306,10 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
             "--source", config.source, "--start", str(start), "--origin", str(config.start), "--step", str(config.step),
             "--window", str(source_window(config)), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
+    if config.egomotion_instances > 1:
+        # Instances work in parallel only on blocks already sent: a window fitted to one frame's
+        # latency would leave all but one idle.
+        args.append("--no-adaptive-window")
     if config.config_file is not None:
         args += ["--config", str(config.config_file)]
     if config.preset:

@@ -2,9 +2,12 @@
 
 Offline replay loses nothing: pipeline topics use congestion control BLOCK, and the source keeps
 at most `window` frames in flight, counting a frame done when its `ack_topic` message (by
-default `map/pose`, the last stage) arrives. A live camera keeps at most `live_window` frames in
-flight and then takes the camera's newest frame: the frames the pipeline has no time for are
-dropped at the camera, so none waits in a queue on the way and latency stays bounded.
+default `map/pose`, the last stage) arrives. With `adaptive_window` (the default) it keeps fewer:
+as many as keep the slowest stage busy, worked out from its send and acknowledgement times
+(window.py), so that frames do not wait in queues for no throughput. A live camera keeps at most
+`live_window` frames in flight and then takes the camera's newest frame: the frames the pipeline
+has no time for are dropped at the camera, so none waits in a queue on the way and latency stays
+bounded.
 
 With `wait_for`, the first frame waits until those services' health tokens are on the network
 (started all at once, as docker-compose does, the pipeline is not there yet). With `loop`, the
@@ -45,6 +48,7 @@ from services.source.frames import Frame, FrameSource, planar_motion
 from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
                                   parse_world_flags, world_keys)
 from services.source.synthetic import WorldConfig
+from services.source.window import AdaptiveWindow, WindowParams
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +79,12 @@ class _SourceSettings(BaseModel):
     stop: int | None = Field(None, ge=0, description="Frame index to stop before (default: the end).")
     step: int = Field(1, ge=1, description="Take every step-th frame.")
     rate: float = Field(0.0, ge=0.0, description="Frames per second to publish at; 0: as fast as the window allows.")
-    window: int = Field(8, ge=0, description="Frames in flight awaiting ack_topic before the source waits; 0: no flow control.")
+    window: int = Field(8, ge=0, description="Frames in flight awaiting ack_topic before the source waits; 0: no flow control. "
+                                             "With adaptive_window, the most it keeps in flight.")
+    adaptive_window: bool = Field(
+        True, description="Replay: keep only as many frames in flight (at most `window`) as keep the slowest stage busy, "
+                          "from the measured delivery rate and the latency of frames sent into an empty pipeline "
+                          "(docs/pipeline.md); false: always `window`. Not for a live camera (live_window).")
     live_window: int = Field(
         2, ge=0, description="The same for a live camera, which then takes its newest frame: the frames the pipeline "
                              "has no time for are dropped at the camera, not queued on the way (0: no flow control).")
@@ -141,6 +150,9 @@ class SourceService(Service):
         self.frames = frames
         self.live = bool(getattr(frames, "live", False))
         self.window = config.live_window if self.live else config.window
+        # The window that follows the pipeline (replay only; a live camera keeps live_window).
+        self.flow = AdaptiveWindow(WindowParams(maximum=self.window)) \
+            if self.window and config.adaptive_window and not self.live else None
         self.abandoned = 0   # live: frames in flight given up after resend_after without an acknowledgement
         self.iterator = iter(frames)
         self.in_flight: collections.OrderedDict[int, CameraFrame] = collections.OrderedDict()
@@ -161,6 +173,7 @@ class SourceService(Service):
         self.last: Frame | None = None
         self.seq_offset, self.stamp_offset = 0, 0.0  # added to the frames of the current lap
         self.resume_checked = False
+        self.ready: CameraFrame | None = None       # the next frame, read ahead while the window is full
 
     def setup(self) -> None:
         if self.window:
@@ -181,9 +194,21 @@ class SourceService(Service):
 
     def on_ack(self, message: Message) -> None:
         seq = message.header.seq
+        now = time.monotonic()
         while self.in_flight and next(iter(self.in_flight)) <= seq:
             self.primer = self.in_flight.popitem(last=False)[1]
-            self.last_progress = time.monotonic()
+            self.last_progress = now
+        if self.flow is not None:
+            before = self.flow.limit
+            self.flow.acked(seq, now)
+            if self.flow.limit != before and not self.flow.probing:
+                log.debug("source: window %d (%.1f frames/s, %.0f ms without a queue)", self.flow.limit,
+                          self.flow.rate or 0.0, 1e3 * (self.flow.min_latency or 0.0))
+
+    @property
+    def limit(self) -> int:
+        """Frames in flight before the source waits (0: no flow control)."""
+        return self.flow.limit if self.flow is not None else self.window
 
     def on_idle(self) -> None:
         now = time.monotonic()
@@ -200,8 +225,9 @@ class SourceService(Service):
                     self.stop()
             self._pause()
             return
-        if self.window and len(self.in_flight) >= self.window:
+        if self.window and len(self.in_flight) >= self.limit:
             self._note_waiting()
+            self._read_ahead()
             self._pause()
             return
         self.waiting_since = None
@@ -216,18 +242,35 @@ class SourceService(Service):
             return
         if self.sent == 0 and self.config.resume and not self.resume_checked:
             self._resume()
-        frame = self._next_frame()
-        if frame is None:
+        message, self.ready = self.ready or self._read(), None
+        if message is None:
             self.finished = True
             return
-        message = frame_message(frame, self.header(frame.seq, frame.stamp, "camera"))
+        seq = message.header.seq
         self.publish("camera/frame", message)
-        self.last_seq = frame.seq
+        self.last_seq = seq
         self.sent += 1
         if self.window:
+            now = time.monotonic()
             if not self.in_flight:
-                self.last_progress = time.monotonic()
-            self.in_flight[frame.seq] = message
+                self.last_progress = now
+            self.in_flight[seq] = message
+            if self.flow is not None:
+                self.flow.sent(seq, now)
+
+    def _read(self) -> CameraFrame | None:
+        """The next frame's message (None after the last)."""
+        frame = self._next_frame()
+        return frame_message(frame, self.header(frame.seq, frame.stamp, "camera")) if frame is not None else None
+
+    def _read_ahead(self) -> None:
+        """While the window is full, read (decode, render) the next frame of a replay, so that it
+        goes out as soon as the window opens: reading is then no stage of its own that the frames
+        in flight wait for. Not a live camera (its newest frame is taken when it can go out), nor
+        before the first frame (where a resume may start elsewhere)."""
+        if self.ready is None and self.sent and not self.live and not self.finished:
+            self.ready = self._read()
+            self.finished = self.ready is None
 
     def _next_frame(self) -> Frame | None:
         """The next frame, as sent: with `loop`, lap after lap."""
@@ -303,11 +346,18 @@ class SourceService(Service):
         # frame, so the first frame in flight gets its true motion, not a first-frame zero.
         for message in ([self.primer] if self.primer is not None else []) + list(self.in_flight.values()):
             self.publish("camera/frame", message)
+        if self.flow is not None:
+            self.flow.resent()
         self.resent += len(self.in_flight)
         self.last_progress = time.monotonic()
 
     def extra_counters(self) -> dict[str, float]:
         extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent}
+        if self.flow is not None:
+            extra["window"] = self.flow.limit
+            if self.flow.rate is not None and self.flow.min_latency is not None:
+                extra["window_rate_fps"] = round(self.flow.rate, 2)
+                extra["window_min_latency_ms"] = round(1e3 * self.flow.min_latency, 1)
         if self.live:
             extra["frames_dropped"] = getattr(self.frames, "frames_dropped", 0)
             extra["frames_abandoned"] = self.abandoned
@@ -357,7 +407,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stop", type=int, help="frame index to stop before")
     parser.add_argument("--step", type=int, help="take every step-th frame")
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
-    parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control)")
+    parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control); with "
+                                                   "the adaptive window, the most")
+    parser.add_argument("--adaptive-window", action=argparse.BooleanOptionalAction, default=None,
+                        help="keep only as many frames in flight as keep the slowest stage busy (default on)")
     parser.add_argument("--live-window", type=int, help="frames in flight from a live camera (default 2; 0: no flow control)")
     parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
     parser.add_argument("--resend-after", type=float, help="seconds without acknowledgement before resending (default 5)")
@@ -373,8 +426,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> SourceConfig:
     """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
     (world settings from --laps and --world KEY=VALUE, a ROS bag's topics from --image-topic ...)."""
-    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "live_window", "ack_topic",
-              "resend_after", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
+    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "adaptive_window",
+              "live_window", "ack_topic", "resend_after", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
     return load_config(SourceConfig, "source", config_file=args.config,
                        overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
 

@@ -1,8 +1,11 @@
 """The source service on real in-process sessions: with `wait_for` the first frame waits for
 those services' health tokens; with `loop` it starts again at the first frame after the last,
 seq and stamps going on, and the first frame of a new lap carries its motion from the last one;
-with `resume` it starts at the last frame the running services have all handled, in its lap."""
+with `resume` it starts at the last frame the running services have all handled, in its lap;
+its adaptive window keeps a pipeline's throughput with fewer frames in flight than a fixed one."""
 
+import multiprocessing
+import queue
 import threading
 import time
 
@@ -10,9 +13,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from schemas import CameraFrame, ServiceStatus
+from schemas import CameraFrame, MapPose, ServiceStatus
 from services.common import codec, topics
-from services.common.convert import image_from_msg, pose_to_matrix
+from services.common.convert import image_from_msg, planar_pose, pose_to_matrix
 from services.common.runtime import RuntimeConfig
 from services.source.frames import planar_motion
 from services.source.service import SourceConfig, SourceService
@@ -122,3 +125,92 @@ def test_resuming_source_starts_at_the_last_frame_the_services_all_handled(handl
     reference = [open_source("synthetic:0", preset="synthetic", stop=FRAMES)[i] for i in range(FRAMES)]
     for message in messages:
         assert np.array_equal(image_from_msg(message.left), reference[message.header.seq % FRAMES].left)
+
+
+STAGES_S = (0.010, 0.030, 0.010)   # the stub pipeline: 33 frames/s, 50 ms through it when empty
+REPLAY_FRAMES = 150
+
+
+def stub_pipeline(port: int, stop, results) -> None:
+    """Three stages in series, each a thread that takes its time from STAGES_S per frame, the last
+    publishing map/pose; in a process of its own (spawned), so that the source's reading and
+    encoding do not hold up the stages' threads. Puts {seq: (arrived, done)} in `results`
+    (monotonic clock, shared by the processes of a machine) once `stop` is set."""
+    client = client_session(port)
+    queues = [queue.Queue() for _ in STAGES_S]
+    arrived: dict[int, float] = {}
+    done: dict[int, float] = {}
+    publisher = client.declare_publisher(topics.key("robot0", "map/pose"), encoding=zenoh.Encoding(codec.encoding_of(MapPose)))
+
+    def on_frame(sample: zenoh.Sample):
+        seq = codec.decode(sample.payload.to_bytes(), CameraFrame, str(sample.encoding)).header.seq
+        arrived.setdefault(seq, time.monotonic())
+        queues[0].put(seq)
+
+    def stage(index: int):
+        while (seq := queues[index].get()) is not None:
+            time.sleep(STAGES_S[index])
+            if index + 1 < len(STAGES_S):
+                queues[index + 1].put(seq)
+            elif seq not in done:
+                done[seq] = time.monotonic()
+                publisher.put(codec.encode(MapPose(header=header(seq, "map"), pose=planar_pose(0.0, 0.0, 0.0),
+                                                   heading=0.0, experience_id=0)))
+
+    workers = [threading.Thread(target=stage, args=(index,)) for index in range(len(STAGES_S))]
+    for worker in workers:
+        worker.start()
+    subscriber = client.declare_subscriber(topics.key("robot0", "camera/frame"), on_frame)
+    stop.wait(120)
+    subscriber.undeclare()
+    for q in queues:
+        q.put(None)
+    for worker in workers:
+        worker.join(timeout=10)
+    publisher.undeclare()
+    client.close()
+    results.put({seq: (arrived[seq], at) for seq, at in done.items()})
+
+
+def replay_through_stub_stages(adaptive: bool) -> tuple[float, float, float, int]:
+    """A replaying source (window 8) and the stub pipeline on real sessions: (frames/s, p50 and
+    p99 frame→map/pose latency in ms as the stages see them, the source's last window)."""
+    port = free_port()
+    router = router_session(port)
+    frames = open_source("synthetic:0", preset="synthetic", stop=REPLAY_FRAMES)
+    config = SourceConfig(source="synthetic:0", window=8, adaptive_window=adaptive)
+    service = SourceService(RuntimeConfig(connect=[endpoint(port)]), config, frames, instance="test")
+    spawn = multiprocessing.get_context("spawn")
+    stop, results = spawn.Event(), spawn.Queue()
+    stub = spawn.Process(target=stub_pipeline, args=(port, stop, results))
+    stub.start()
+    thread = threading.Thread(target=service.run)
+    thread.start()
+    try:
+        wait_for(lambda: not thread.is_alive(), timeout=60, period=0.1)   # it exits once every frame is acknowledged
+    finally:
+        service.stop()
+        thread.join(timeout=10)
+        stop.set()
+        times = results.get(timeout=30)
+        stub.join(timeout=10)
+        router.close()
+    assert sorted(times) == list(range(REPLAY_FRAMES))
+    latencies = np.array([done - arrived for arrived, done in times.values()]) * 1e3
+    finished = sorted(done for _, done in times.values())
+    return ((len(finished) - 1) / (finished[-1] - finished[0]), float(np.percentile(latencies, 50)),
+            float(np.percentile(latencies, 99)), service.limit)
+
+
+def test_adaptive_window_keeps_the_throughput_of_a_fixed_window_at_a_fraction_of_its_latency():
+    """Replay through stub stages of 10, 30 and 10 ms (sleeps in a process of their own, so the
+    measure hardly depends on the machine's load): the adaptive window (at most 8) keeps the 30 ms stage as busy as a fixed
+    window of 8 does with about 4 frames in flight (2 keep it busy, and the margin's 2), so a frame
+    waits in queues for about half as long."""
+    fixed = replay_through_stub_stages(adaptive=False)
+    adaptive = replay_through_stub_stages(adaptive=True)
+    print(f"fixed window of 8: {fixed[0]:.1f} frames/s, p50 {fixed[1]:.0f} ms, p99 {fixed[2]:.0f} ms; "
+          f"adaptive: {adaptive[0]:.1f} frames/s, p50 {adaptive[1]:.0f} ms, p99 {adaptive[2]:.0f} ms, window {adaptive[3]}")
+    assert fixed[3] == 8 and 3 <= adaptive[3] <= 5
+    assert adaptive[0] >= 0.9 * fixed[0]
+    assert adaptive[1] <= 0.65 * fixed[1]

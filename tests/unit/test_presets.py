@@ -142,3 +142,10 @@ def test_the_run_resolves_the_source_as_its_service_will(tmp_path):
     assert [args[i + 1] for i, a in enumerate(args) if a == "--world"] == ["speed=0.2", "wander=0.0"]
     parser, _ = service_parser("source")
     assert config_from_args(parser.parse_args(args[2:])).world() == {"laps": 3, "speed": 0.2, "wander": 0.0}
+
+
+def test_sharded_runs_keep_a_fixed_window_of_whole_blocks():
+    alone = source_args(RunConfig(source="synthetic:0", egomotion="stereo"), 0, "map/pose")
+    sharded = source_args(RunConfig(source="synthetic:0", egomotion="stereo", egomotion_instances=2), 0, "map/pose")
+    assert "--no-adaptive-window" not in alone and alone[alone.index("--window") + 1] == "8"
+    assert "--no-adaptive-window" in sharded and int(sharded[sharded.index("--window") + 1]) >= 3 * 4
