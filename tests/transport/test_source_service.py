@@ -26,13 +26,8 @@ from tests.netutil import client_session, endpoint, free_port, router_session, w
 FRAMES = 3
 
 
-def test_source_waits_for_the_pipeline_then_loops():
-    port = free_port()
-    router = router_session(port)
-    frames = open_source("synthetic:0", preset="synthetic", stop=FRAMES)
-    config = SourceConfig(source="synthetic:0", window=0, loop=True, wait_for=["egomotion", "expmap"])
-    service = SourceService(RuntimeConfig(connect=[endpoint(port)]), config, frames, instance="test")
-    client = client_session(port)
+def subscribe_frames(client):
+    """A subscriber of robot0's camera/frame, the frames it receives, and the lock to read them under."""
     received: list[CameraFrame] = []
     lock = threading.Lock()
 
@@ -40,7 +35,17 @@ def test_source_waits_for_the_pipeline_then_loops():
         with lock:
             received.append(codec.decode(sample.payload.to_bytes(), CameraFrame, str(sample.encoding)))
 
-    subscriber = client.declare_subscriber(topics.key("robot0", "camera/frame"), on_frame)
+    return client.declare_subscriber(topics.key("robot0", "camera/frame"), on_frame), received, lock
+
+
+def test_source_waits_for_the_pipeline_then_loops():
+    port = free_port()
+    router = router_session(port)
+    frames = open_source("synthetic:0", preset="synthetic", stop=FRAMES)
+    config = SourceConfig(source="synthetic:0", window=0, loop=True, wait_for=["egomotion", "expmap"])
+    service = SourceService(RuntimeConfig(connect=[endpoint(port)]), config, frames, instance="test")
+    client = client_session(port)
+    subscriber, received, lock = subscribe_frames(client)
     thread = threading.Thread(target=service.run)
     thread.start()
     tokens = []
@@ -98,14 +103,7 @@ def test_resuming_source_starts_at_the_last_frame_the_services_all_handled(handl
         key = topics.status_key("robot0", answer.service, "a")
         queryables.append(client.declare_queryable(key, lambda query, key=key, answer=answer: query.reply(
             key, codec.encode(answer), encoding=zenoh.Encoding(codec.encoding_of(answer)))))
-    received: list[CameraFrame] = []
-    lock = threading.Lock()
-
-    def on_frame(sample: zenoh.Sample):
-        with lock:
-            received.append(codec.decode(sample.payload.to_bytes(), CameraFrame, str(sample.encoding)))
-
-    subscriber = client.declare_subscriber(topics.key("robot0", "camera/frame"), on_frame)
+    subscriber, received, lock = subscribe_frames(client)
     thread = threading.Thread(target=service.run)
     thread.start()
     try:
