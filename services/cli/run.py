@@ -28,6 +28,8 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--calibration", type=Path, help="calibration TOML file for the source")
     parser.add_argument("-c", "--config", type=Path, help="gridslam TOML config file for every service")
     parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an earlier run in --out (a folder that holds one is refused otherwise)")
     parser.add_argument("--n-frames", type=int, help="process only this many frames")
     parser.add_argument("--start", type=int, help="first frame index")
     parser.add_argument("--step", type=step_value, action="append", metavar="N|odometry|lattice",
@@ -122,7 +124,7 @@ def execute(args, **defaults) -> int:
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args))
     progress = Progress()
     try:
-        result = run_pipeline(config, args.out, progress=progress)
+        result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite)
     finally:
         progress.close()
     print(format_table(summary_rows(result.metrics)))

@@ -53,6 +53,9 @@ LIVENESS_CHECK_S = 2.0      # while no frame completes, how often the stages' he
 MAP_LOG = "experience_map.log"           # the service state files in the results folder, so that a
 TEMPLATE_LOG = "view_templates.log"      # service the runner restarts resumes where it stopped
 GRID_CHECKPOINT = "gridcells.checkpoint.npz"
+# What a run leaves that the next run in the same folder would resume from (the services' state,
+# with their side files such as the keyframes) or append to (the logs).
+RUN_STATE_PATTERNS = ("experience_map.*", "view_templates.*", "gridcells.checkpoint*", "logs/*.log")
 
 
 class RunError(GridslamError):
@@ -349,10 +352,13 @@ class RunResult:
     metrics: dict
 
 
-def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop_event: threading.Event | None = None) -> RunResult:
+def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop_event: threading.Event | None = None,
+                 overwrite: bool = False) -> RunResult:
     """Run the whole stack on `config.source`, write the results folder, return its metrics.
 
-    `progress(done, total)` is called about five times a second; `stop_event` ends the run early."""
+    `progress(done, total)` is called about five times a second; `stop_event` ends the run early.
+    A folder that holds an earlier run is refused, or cleared first with `overwrite`: its
+    services would resume that run's state instead of starting afresh."""
     stop_event = stop_event or threading.Event()
     if config.connect is None:
         check_port_free(config.listen)
@@ -368,6 +374,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
                          calibration=settings.calibration, world=settings.world(), topics=bag_settings(settings))
     total = None if getattr(frames, "live", False) else len(frames)
     folder = results_dir(out)
+    clear_previous_run(folder, overwrite)
     write_config(folder / "config.json", config)
     (folder / "logs").mkdir(exist_ok=True)
     ack_topic = "map/pose" if config.mapping else "grid/pose"
@@ -403,6 +410,21 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         result["summary"]["run_mcap"] = write_after_run(folder, recording, trajs, config)
     write_report(folder, recording, result, trajs)
     return RunResult(folder, result)
+
+
+def clear_previous_run(folder: Path, overwrite: bool) -> None:
+    """Refuse a results folder that holds an earlier run's state, or remove that state (`overwrite`)."""
+    previous = sorted(path for pattern in RUN_STATE_PATTERNS for path in folder.glob(pattern) if path.is_file())
+    if not previous:
+        return
+    if not overwrite:
+        names = ", ".join(str(path.relative_to(folder)) for path in previous[:3]) + (", …" if len(previous) > 3 else "")
+        raise RunError(f"{folder} already holds a run ({names}): give another --out, or --overwrite to replace it")
+    for path in previous:
+        try:
+            path.unlink()
+        except OSError as error:
+            raise RunError(f"{path}: cannot remove the earlier run's file ({error.strerror or error})") from None
 
 
 def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[str]) -> None:
