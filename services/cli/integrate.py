@@ -61,7 +61,7 @@ def register(subparsers) -> None:
                         help="CSV (forward,left,yaw | vx,vy[,heading] | LIBVISO2 columns), KITTI poses, TUM trajectory or rat .npz")
     parser.add_argument("--format", dest="fmt", metavar="|".join(FORMATS),
                         help="input format (default: from the extension, then the content)")
-    parser.add_argument("--decoder", choices=tuple(DECODERS), default="subpixel", help="how the lattice flow is read (default subpixel)")
+    parser.add_argument("--decoder", choices=tuple(DECODERS), default="calibrated", help="how the lattice flow is read (default calibrated)")
     parser.add_argument("--n-frames", type=int, metavar="N", help="only the first N rows")
     parser.add_argument("--network-rotation", type=float, default=0.0, metavar="DEG",
                         help="turn the world frame the network runs in by DEG (results are turned back): shows how much a "

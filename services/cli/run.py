@@ -20,7 +20,7 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--egomotion-instances", type=int, metavar="N",
                         help="ego-motion processes sharing the frames (default 1; docs/pipeline.md)")
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default calibrated)")
     parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
     parser.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
     parser.add_argument("--preset", help="dataset preset: synthetic, campus, nubot, kitti, stlucia, or a preset file "

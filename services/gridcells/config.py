@@ -9,13 +9,19 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 
+# Per-frame noise of the direction of travel each decoder reads from the lattice, radians: the rms
+# against its input on `gridslam demo` (docs/gridcells.md), for calibrated the largest of the
+# demo, the simulated walk and KITTI 06 (0.0016), rounded up.
+DIRECTION_SIGMA = {"paper": 0.1, "fft": 0.11, "subpixel": 0.005, "calibrated": 0.002}
+
+
 class GridCellsConfig(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     integrator: Literal["grid", "deadreckoning"] = Field(
         "grid", description="grid: the periodic attractor network; deadreckoning: plain integration of the increments (baseline).")
     decoder: Literal["paper", "fft", "subpixel", "calibrated"] = Field(
-        "subpixel", description="How the lattice flow is read between frames; calibrated: subpixel's shift through the inverse of "
+        "calibrated", description="How the lattice flow is read between frames; calibrated: subpixel's shift through the inverse of "
                                 "the flow measured once per parameter set (cached on disk).")
     step: Literal["odometry", "lattice"] = Field(
         "odometry", description="Where the step length comes from: the ego-motion (paper eq. 5) or the calibrated lattice flow "
@@ -29,11 +35,17 @@ class GridCellsConfig(BaseModel):
     typical_speed: float = Field(
         0.5, gt=0, description="Typical distance travelled per frame in metres, used by velocity_scale = auto.")
     neurons: int = Field(128, ge=16, le=512, description="Side n of the n×n network.")
-    direction_sigma: float = Field(
-        0.005, ge=0, description="Standard deviation of the direction of travel read from the lattice, radians per frame: "
-                                 "added (as sideways error of the step) to the ego-motion's covariance in grid/pose "
-                                 "(measured: subpixel 0.0047 rad rms on the demo, calibrated 0.0004; docs/gridcells.md).")
+    direction_sigma: float | None = Field(
+        None, ge=0, description="Standard deviation of the direction of travel read from the lattice, radians per frame: "
+                                "added (as sideways error of the step) to the ego-motion's covariance in grid/pose; "
+                                "default: the decoder's measured noise (paper 0.1, fft 0.11, subpixel 0.005, "
+                                "calibrated 0.002; docs/gridcells.md).")
     activity_every: int = Field(5, ge=0, description="Publish grid/activity every this many frames (0: never).")
     activity_size: int = Field(64, ge=8, le=512, description="Side of the downsampled activity image.")
     checkpoint: Path | None = Field(
         None, description="File the integrator's state is written to after every frame; a restarted service resumes from it.")
+
+    @property
+    def direction_noise(self) -> float:
+        """direction_sigma, or the decoder's measured noise when it is not set."""
+        return DIRECTION_SIGMA[self.decoder] if self.direction_sigma is None else self.direction_sigma

@@ -133,7 +133,7 @@ class GridCellsService(Service):
         of a step whose direction is read from the lattice."""
         if covariance is None or self.config.integrator != "grid":
             return covariance
-        sideways = (step_length * self.config.direction_sigma) ** 2
+        sideways = (step_length * self.config.direction_noise) ** 2
         return [value + (sideways if index == 4 else 0.0) for index, value in enumerate(covariance)]
 
     def activity(self, header, shift) -> GridActivity:
@@ -148,7 +148,7 @@ class GridCellsService(Service):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default subpixel)")
+    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default calibrated)")
     parser.add_argument("--step", choices=["odometry", "lattice"], help="step length from the ego-motion (default) or the lattice")
     parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
     parser.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")

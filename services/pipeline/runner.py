@@ -71,7 +71,7 @@ class RunConfig(BaseModel):
     egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
         None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
-    decoder: Literal["paper", "fft", "subpixel", "calibrated"] | None = Field(None, description="Lattice flow decoder (default subpixel).")
+    decoder: Literal["paper", "fft", "subpixel", "calibrated"] | None = Field(None, description="Lattice flow decoder (default calibrated).")
     step_source: Literal["odometry", "lattice"] | None = Field(
         None, description="Grid-cell step length from the ego-motion (default) or the calibrated lattice flow.")
     modules: int | None = Field(None, ge=1, le=4, description="Grid modules (default 1).")

@@ -31,19 +31,30 @@ def test_poses_follow_the_egomotion_composition_and_say_how_they_were_made():
     assert (dead[-1].decoder, dead[-1].modules) == (None, 0)
     grid = poses_of(GridCellsConfig(typical_speed=0.1, heading="ring"), increments)
     last = grid[-1]
-    assert (last.integrator, last.decoder, last.step_source, last.heading_model, last.modules) == ("grid", "subpixel", "odometry", "ring", 1)
+    assert (last.integrator, last.decoder, last.step_source, last.heading_model, last.modules) == ("grid", "calibrated", "odometry", "ring", 1)
     # Turning 4° per frame: the grid's path stays on the composed one (a turn-first mix-up
     # would put every step 4° off).
     assert math.hypot(last.pose.position.x - truth.positions[-1, 0], last.pose.position.y - truth.positions[-1, 1]) < 0.01
 
 
 def test_options_come_from_the_environment(monkeypatch):
-    monkeypatch.setenv("GRIDSLAM_GRIDCELLS_DECODER", "calibrated")
+    monkeypatch.setenv("GRIDSLAM_GRIDCELLS_DECODER", "subpixel")
     monkeypatch.setenv("GRIDSLAM_GRIDCELLS_STEP", "lattice")
     monkeypatch.setenv("GRIDSLAM_GRIDCELLS_MODULES", "3")
     monkeypatch.setenv("GRIDSLAM_GRIDCELLS_HEADING", "ring")
     config = load_config(GridCellsConfig, "gridcells")
-    assert (config.decoder, config.step, config.modules, config.heading) == ("calibrated", "lattice", 3, "ring")
+    assert (config.decoder, config.step, config.modules, config.heading) == ("subpixel", "lattice", 3, "ring")
+
+
+@pytest.mark.parametrize("decoder, sigma", [("calibrated", 0.002), ("subpixel", 0.005), ("paper", 0.1)])
+def test_the_sideways_noise_added_to_the_covariance_is_the_decoders_unless_set(decoder, sigma):
+    covariance = [1e-6 if i in (0, 4, 8) else 0.0 for i in range(9)]
+    service = GridCellsService(RuntimeConfig(), GridCellsConfig(decoder=decoder), "test")
+    added = service.increment_covariance(covariance, 0.1)
+    assert added[4] == pytest.approx(1e-6 + (0.1 * sigma) ** 2)
+    assert [added[i] for i in range(9) if i != 4] == [covariance[i] for i in range(9) if i != 4]
+    fixed = GridCellsService(RuntimeConfig(), GridCellsConfig(decoder=decoder, direction_sigma=0.0), "test")
+    assert fixed.increment_covariance(covariance, 0.1) == covariance
 
 
 def test_run_flags_reach_the_gridcells_service(tmp_path):
