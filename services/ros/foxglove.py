@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import time
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
@@ -28,6 +27,7 @@ from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.errors import ConfigError
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
+from services.gridcells.integrator import DeadReckoning, turn_first
 from services.ros.messages import TOPICS, MapState, RosMessages, camera_jpeg, link_kind, typestore
 from services.viewer.config import is_loopback
 from services.viewer.state import planar_from_camera
@@ -94,7 +94,7 @@ class FoxgloveService(Service):
         self.map_state = MapState()
         self.map_pending: int | None = None     # stamp of a map change not sent yet
         self.map_sent_at = 0.0
-        self.dead_reckoning: tuple[float, float, float] | None = None   # egomotion dead-reckoned (x, y, heading)
+        self.dead_reckoning: DeadReckoning | None = None   # of the egomotion increments
         self.egomotion_seq = -1
         self._snapshot: MapSnapshot | None = None   # the map as fetched at start, until the main thread applies it
 
@@ -137,20 +137,16 @@ class FoxgloveService(Service):
         return stamp.sec * 1_000_000_000 + stamp.nanosec
 
     def on_egomotion(self, message: EgoMotion) -> None:
-        # Dead reckoning of the increments as egomotion.tum has it (integrate_increments: the
-        # step along the heading before the increment's own yaw).
+        # Dead reckoning of the increments as egomotion.tum has it, the way the viewer and the
+        # gridcells baseline do it (turned for the integrators' turn-first order).
         seq = message.header.seq
         if self.dead_reckoning is None or seq <= self.egomotion_seq:
-            self.dead_reckoning = (0.0, 0.0, 0.0)
+            self.dead_reckoning = DeadReckoning()
         self.egomotion_seq = seq
-        x, y, heading = self.dead_reckoning
         step = message.increment
-        x += math.cos(heading) * step.forward - math.sin(heading) * step.left
-        y += math.sin(heading) * step.forward + math.cos(heading) * step.left
-        heading = math.remainder(heading + step.yaw, math.tau)
-        self.dead_reckoning = (x, y, heading)
+        pose = self.dead_reckoning.step(*turn_first(step.forward, step.left, step.yaw), step.yaw).pose
         stamp = self._stamp(message)
-        self._log(stamp, *self.ros.planar_pose("egomotion", stamp, x, y, heading))
+        self._log(stamp, *self.ros.planar_pose("egomotion", stamp, pose.x, pose.y, pose.heading))
 
     def on_grid_pose(self, message: GridPose) -> None:
         stamp = self._stamp(message)
