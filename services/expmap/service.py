@@ -1,7 +1,11 @@
 """expmap: the experience map of grid-cell odometry, view templates and loop closures: a pose
 graph (gtsam iSAM2) with metric closures by default, RatSLAM's relaxation and snap-to-experience
 as the paper's model (graph.py). Writes loop_closures.csv: every confirmed closure, its
-measurement and whether the map accepted it."""
+measurement and whether the map accepted it.
+
+The map is kept as a journal of its inputs with a checkpoint beside it (store.py): when the
+store's CheckpointPolicy says so the map is rebased and its state written in a background
+thread; a restart restores it and replays only the frames after it."""
 
 from __future__ import annotations
 
@@ -10,10 +14,12 @@ import collections
 import csv
 import logging
 import threading
+import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, ViewTemplate
@@ -90,6 +96,14 @@ def link_message(link) -> Link:
     return Link(**asdict(link))
 
 
+def closure_row(step: Step, fate: str, residual: float | None) -> tuple:
+    """loop_closures.csv's row of a frame whose closure the map decided on."""
+    c = step.closure
+    return (step.frame, c.matched_frame, c.matched_template, c.votes, c.method or "none", f"{c.forward:.4f}",
+            f"{c.left:.4f}", f"{c.yaw:.5f}", c.inliers, c.geometry_error, "" if residual is None else f"{residual:.3f}",
+            str(fate == "accepted").lower())
+
+
 def closure_input(message: LoopClosure) -> ClosureInput:
     """The map's view of a confirmed closure: the matched place and the measurement, if any."""
     evidence = {"votes": message.votes, "inliers": message.inliers, "geometry_error": message.geometry_error}
@@ -108,16 +122,19 @@ class ExpMapService(Service):
         super().__init__(runtime, instance)
         self.config = config
         self.store = MapStore(config.store, config.params())
-        self.map = ExperienceMap(config.params())
         self.lock = threading.Lock()   # map/snapshot reads on a Zenoh thread while frames are applied
         # Results of the last frames, to answer a re-sent frame that is already in the map.
         self.recent: collections.OrderedDict[int, FrameResult] = collections.OrderedDict()
         self.csv_path = config.out / "loop_closures.csv" if config.out else None
-        rows = []
-        for step in self.store.steps:
-            result = step.apply(self.map)
-            self._remember(result)
-            rows += self._closure_rows(step, result)
+        self.writer: threading.Thread | None = None   # writes the last checkpoint
+        started = time.perf_counter()
+        self.map, extras = self.store.rebuild(each=lambda step, result: self._remember(result))
+        for frame, experience, x, y, heading in extras.get("recent", []):   # before the checkpoint: not replayed
+            self.recent[int(frame)] = FrameResult(int(frame), int(experience), (float(x), float(y), float(heading)))
+        self.recent = collections.OrderedDict(sorted(self.recent.items())[-REPLAY_FRAMES:])
+        step_of = {step.frame: step for step in self.store.steps}
+        rows = [closure_row(step_of[frame], fate, residual)
+                for (frame, _, fate), residual in zip(self.map.decisions, self.map.residuals)]
         if self.csv_path is not None:   # written afresh from the journal: a crash never leaves it behind
             try:
                 self.csv_path.parent.mkdir(parents=True, exist_ok=True)
@@ -125,8 +142,8 @@ class ExpMapService(Service):
                 raise PersistenceError(f"{self.csv_path.parent}: cannot create ({error.strerror or error})") from None
             self._write_closures(rows, "w")
         if self.store.steps:
-            log.info("expmap resumed from %s: %d frames, %d experiences, %d links", config.store,
-                     len(self.store.steps), len(self.map), len(self.map.links))
+            log.info("expmap resumed from %s in %.2f s: %d frames, %d experiences, %d links", config.store,
+                     time.perf_counter() - started, len(self.store.steps), len(self.map), len(self.map.links))
         self.poses: dict[int, GridPose] = {}
         self.views: dict[int, ViewTemplate] = {}
         self.closures: dict[int, LoopClosure] = {}
@@ -139,6 +156,8 @@ class ExpMapService(Service):
         self.queryable("map/snapshot", self.snapshot)
 
     def teardown(self) -> None:
+        if self.writer is not None:
+            self.writer.join()
         self.store.close()
 
     def on_grid_pose(self, message: GridPose) -> None:
@@ -189,8 +208,28 @@ class ExpMapService(Service):
                 result = step.apply(self.map)
             self._remember(result)
             if self.csv_path is not None and result.closure is not None:
-                self._write_closures(self._closure_rows(step, result), "a")
+                self._write_closures([closure_row(step, result.closure, result.residual)], "a")
             self._publish(pose, result)
+            if self.store.checkpoint_due(self.map):
+                self._checkpoint()
+
+    def _checkpoint(self) -> None:
+        """Rebase the map at a checkpoint recorded in the journal, and write its state beside it
+        in a background thread (the previous write joined first)."""
+        if self.writer is not None:
+            self.writer.join()
+        with self.lock:
+            meta, state = self.store.checkpoint(self.map)
+        recent = np.array([(r.frame, r.experience, *r.pose) for r in self.recent.values()], dtype=float).reshape(-1, 5)
+        self.writer = threading.Thread(target=self._write_checkpoint, args=(meta, state, {"recent": recent}),
+                                       name="expmap-checkpoint", daemon=True)
+        self.writer.start()
+
+    def _write_checkpoint(self, meta: dict, state: dict, extras: dict) -> None:
+        try:
+            self.store.write_checkpoint(meta, state, extras)
+        except OSError as error:   # the journal still holds the map: a restart replays more of it
+            log.warning("%s: cannot write the map checkpoint (%s)", self.store.path, error.strerror or error)
 
     def _publish(self, pose: GridPose, result: FrameResult) -> None:
         if result.new_experiences or result.new_links or result.moved:
@@ -222,16 +261,6 @@ class ExpMapService(Service):
                                                    template_id=state.templates[i], frame=state.created[i])
                                         for i, (x, y, heading) in enumerate(state.poses)],
                            links=[link_message(link) for link in state.links])
-
-    @staticmethod
-    def _closure_rows(step: Step, result: FrameResult) -> list[tuple]:
-        """loop_closures.csv's row of a frame whose closure the map decided on (none otherwise)."""
-        if result.closure is None:
-            return []
-        c = step.closure
-        return [(step.frame, c.matched_frame, c.matched_template, c.votes, c.method or "none", f"{c.forward:.4f}",
-                 f"{c.left:.4f}", f"{c.yaw:.5f}", c.inliers, c.geometry_error,
-                 "" if result.residual is None else f"{result.residual:.3f}", str(result.closure == "accepted").lower())]
 
     def _write_closures(self, rows: list[tuple], mode: str) -> None:
         try:
