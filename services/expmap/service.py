@@ -4,8 +4,9 @@ as the paper's model (graph.py). Writes loop_closures.csv: every confirmed closu
 measurement and whether the map accepted it.
 
 The map is kept as a journal of its inputs with a checkpoint beside it (store.py): when the
-store's CheckpointPolicy says so the map is rebased and its state written in a background
-thread; a restart restores it and replays only the frames after it."""
+store's CheckpointPolicy (`checkpoint_updates`, `checkpoint_frames`) says so, the map is rebased
+and its state written in a background thread; a restart restores it and replays only the
+frames after it."""
 
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ from services.common.errors import DataError, PersistenceError
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
-from services.expmap.store import MapStore, Step
+from services.expmap.store import CheckpointPolicy, MapStore, Step
 
 log = logging.getLogger(__name__)
 
@@ -76,10 +77,14 @@ class ExpMapConfig(BaseModel):
         3.0, gt=0, description="Refuse a closure whose innovation exceeds this many standard deviations (optimizer gtsam).")
     closure_iterations: int = Field(4, ge=0, description="Extra solver iterations on a frame with an accepted closure.")
     store: Path = Field(Path("experience_map.log"), description="Append-only map log; a restart resumes from it.")
+    checkpoint_updates: int = Field(
+        500, ge=0, description="Solver updates between checkpoints of the map beside its log (a restart replays only the "
+                               "frames after the last); 0: none.")
+    checkpoint_frames: int = Field(50, ge=1, description="Fewest frames between checkpoints.")
     out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
 
     def params(self) -> MapParams:
-        return MapParams(**self.model_dump(exclude={"store", "out"}))
+        return MapParams(**self.model_dump(exclude={"store", "out", "checkpoint_updates", "checkpoint_frames"}))
 
 
 CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "measurement", "forward", "left", "yaw",
@@ -121,14 +126,15 @@ class ExpMapService(Service):
     def __init__(self, runtime: RuntimeConfig, config: ExpMapConfig, instance: str | None = None):
         super().__init__(runtime, instance)
         self.config = config
-        self.store = MapStore(config.store, config.params())
+        self.store = MapStore(config.store, config.params(),
+                              CheckpointPolicy(min_steps=config.checkpoint_frames, updates=config.checkpoint_updates))
         self.lock = threading.Lock()   # map/snapshot reads on a Zenoh thread while frames are applied
         # Results of the last frames, to answer a re-sent frame that is already in the map.
         self.recent: collections.OrderedDict[int, FrameResult] = collections.OrderedDict()
         self.csv_path = config.out / "loop_closures.csv" if config.out else None
         self.writer: threading.Thread | None = None   # writes the last checkpoint
         started = time.perf_counter()
-        self.map, extras = self.store.rebuild(each=lambda step, result: self._remember(result))
+        self.map, restored, extras = self.store.rebuild(each=lambda step, result: self._remember(result))
         for frame, experience, x, y, heading in extras.get("recent", []):   # before the checkpoint: not replayed
             self.recent[int(frame)] = FrameResult(int(frame), int(experience), (float(x), float(y), float(heading)))
         self.recent = collections.OrderedDict(sorted(self.recent.items())[-REPLAY_FRAMES:])
@@ -142,8 +148,10 @@ class ExpMapService(Service):
                 raise PersistenceError(f"{self.csv_path.parent}: cannot create ({error.strerror or error})") from None
             self._write_closures(rows, "w")
         if self.store.steps:
-            log.info("expmap resumed from %s in %.2f s: %d frames, %d experiences, %d links", config.store,
-                     time.perf_counter() - started, len(self.store.steps), len(self.map), len(self.map.links))
+            log.info("expmap resumed from %s in %.2f s: %d frames (%s), %d experiences, %d links", config.store,
+                     time.perf_counter() - started, len(self.store.steps),
+                     f"checkpoint after {restored}, {len(self.store.steps) - restored} replayed" if restored else "all replayed",
+                     len(self.map), len(self.map.links))
         self.poses: dict[int, GridPose] = {}
         self.views: dict[int, ViewTemplate] = {}
         self.closures: dict[int, LoopClosure] = {}

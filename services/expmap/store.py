@@ -78,18 +78,20 @@ def header(params: MapParams) -> dict:
 @dataclass(frozen=True)
 class CheckpointPolicy:
     """When to checkpoint: at least `min_steps` frames after the last checkpoint, once the
-    optimiser's work since it (gtsam: variables re-eliminated) reaches `work_ratio` times the
-    map's size (what rebasing re-eliminates), or after `max_steps` frames. A restart replays
-    what the map did since its checkpoint, about `work_ratio` rebases' worth, and rebasing
-    costs the live map about 1/`work_ratio` of its optimiser's work."""
+    optimiser has made `updates` updates since it, or after `max_steps` frames. An iSAM2 update
+    costs time in proportion to the map (gtsam 4.3 visits the whole Bayes tree), and so does
+    rebasing: on the looping stack's journal, rebasing 2800 experiences cost 0.9 s, about 230
+    of the updates around it (docs/reliability.md). 500 updates keep the replay after a restart
+    to about two rebases' time and the rebases to about a third of the map's time, whatever
+    the map's size. `updates` 0: no checkpoints."""
 
     min_steps: int = 50
     max_steps: int = 5000
-    work_ratio: float = 4.0
+    updates: int = 500
 
     def due(self, experience_map: ExperienceMap, steps_since: int) -> bool:
-        return steps_since >= self.min_steps and \
-            (steps_since >= self.max_steps or experience_map.optimizer.work >= self.work_ratio * len(experience_map))
+        return self.updates > 0 and steps_since >= self.min_steps and \
+            (steps_since >= self.max_steps or experience_map.optimizer.updates >= self.updates)
 
 
 def parse_records(records: list[dict]) -> tuple[list[Step], list[int]]:
@@ -170,14 +172,14 @@ def load_checkpoint(path: Path, params: MapParams, steps: list[Step], checkpoint
 
 
 def rebuild(path: Path, params: MapParams, steps: list[Step], checkpoints: list[int],
-            each: Callable[[Step, FrameResult], None] | None = None) -> tuple[ExperienceMap, dict[str, np.ndarray]]:
+            each: Callable[[Step, FrameResult], None] | None = None) -> tuple[ExperienceMap, int, dict[str, np.ndarray]]:
     """The map a journal describes: from its checkpoint and the steps after it when there is a
-    usable one, else from all its steps; and the service's arrays the checkpoint holds. `each`
-    sees each step replayed."""
+    usable one, else from all its steps; how many steps the checkpoint covered (0: none); the
+    service's arrays the checkpoint holds. `each` sees each step replayed."""
     restored = load_checkpoint(Path(path), params, steps, checkpoints)
     experience_map, start, extras = restored if restored is not None else (ExperienceMap(params), 0, {})
     replay(experience_map, steps, checkpoints, start, each)
-    return experience_map, extras
+    return experience_map, start, extras
 
 
 class MapStore:
@@ -217,7 +219,7 @@ class MapStore:
         self.journal.close()
 
     def rebuild(self, each: Callable[[Step, FrameResult], None] | None = None
-                ) -> tuple[ExperienceMap, dict[str, np.ndarray]]:
-        """The map the stored steps describe (from the checkpoint when usable), and the arrays
-        the service saved with the checkpoint."""
+                ) -> tuple[ExperienceMap, int, dict[str, np.ndarray]]:
+        """The map the stored steps describe (from the checkpoint when usable), the steps the
+        checkpoint covered, and the arrays the service saved with it."""
         return rebuild(self.path, self.params, self.steps, self.checkpoints, each)

@@ -381,7 +381,7 @@ def test_a_map_restored_from_its_checkpoint_and_the_frames_after_it_is_the_map_t
     live = live_store(path, steps)
     assert MapStore(path, PARAMS).checkpoints == [100, 200]
     replayed = []
-    restored, extras = MapStore(path, PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
+    restored, _, extras = MapStore(path, PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
     assert replayed == [step.frame for step in steps[200:]] and extras["recent"].tolist() == [steps[199].frame]
     same_state(restored, live)
     assert restored.closures == {"accepted": 8, "rejected": 8, "unmeasured": 0, "unmatched": 0}
@@ -403,7 +403,7 @@ def test_an_earlier_checkpoint_of_the_same_journal_restores_the_same_map(tmp_pat
     live = live_store(tmp_path / "map.log", steps)
     checkpoint_path(tmp_path / "first.log").replace(checkpoint_path(tmp_path / "map.log"))
     replayed = []
-    restored, _ = MapStore(tmp_path / "map.log", PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
+    restored, _, _ = MapStore(tmp_path / "map.log", PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
     assert replayed == [step.frame for step in steps[100:]]
     same_state(restored, live)
 
@@ -441,7 +441,7 @@ def test_an_unusable_checkpoint_is_named_in_a_warning_and_the_whole_journal_repl
     spoil(path, steps)
     replayed = []
     with caplog.at_level(logging.WARNING):
-        restored, extras = MapStore(path, PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
+        restored, _, extras = MapStore(path, PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 1 and str(checkpoint_path(path)) in warnings[0] and reason in warnings[0]
     assert f"replaying the whole journal ({len(steps)} frames)" in warnings[0] and "\n" not in warnings[0]
@@ -450,12 +450,13 @@ def test_an_unusable_checkpoint_is_named_in_a_warning_and_the_whole_journal_repl
 
 
 def test_checkpoints_come_at_the_same_frames_in_two_runs_so_their_journals_are_the_same(tmp_path):
-    # The default policy: decided on the map's own work, not on time.
+    # Decided on the map's own work (solver updates), not on time.
     _, steps = two_laps_with_a_look_alike()
-    live_store(tmp_path / "a.log", steps, CheckpointPolicy())
-    live_store(tmp_path / "b.log", steps, CheckpointPolicy(min_steps=20))
-    assert MapStore(tmp_path / "a.log", PARAMS).checkpoints   # the policy does checkpoint this run
-    live_store(tmp_path / "c.log", steps, CheckpointPolicy())
+    policy = CheckpointPolicy(min_steps=20, updates=12)
+    live_store(tmp_path / "a.log", steps, policy)
+    live_store(tmp_path / "b.log", steps, CheckpointPolicy(min_steps=20, updates=6))
+    assert len(MapStore(tmp_path / "a.log", PARAMS).checkpoints) >= 2   # the policy does checkpoint this run
+    live_store(tmp_path / "c.log", steps, policy)
     assert (tmp_path / "a.log").read_bytes() == (tmp_path / "c.log").read_bytes()
     assert (tmp_path / "a.log").read_bytes() != (tmp_path / "b.log").read_bytes()
 
@@ -526,8 +527,8 @@ def messages(steps: list[Step]) -> list[tuple[str, object]]:
     return out
 
 
-def service(store, published: list | None = None, out=None) -> ExpMapService:
-    expmap = ExpMapService(RuntimeConfig(), ExpMapConfig(store=store, new_experience_distance=0.6, out=out))
+def service(store, published: list | None = None, out=None, **config) -> ExpMapService:
+    expmap = ExpMapService(RuntimeConfig(), ExpMapConfig(store=store, new_experience_distance=0.6, out=out, **config))
     expmap._send = lambda topic, message: published.append((topic, message)) if published is not None else None
     return expmap
 
@@ -611,22 +612,21 @@ def test_loop_closures_csv_says_which_closures_the_map_kept_and_survives_a_resta
 def test_a_service_killed_after_a_checkpoint_restores_it_and_writes_what_the_uninterrupted_one_wrote(tmp_path, caplog):
     frames, steps = two_laps_with_a_look_alike()
     inputs = messages(steps)
-    uninterrupted = service(tmp_path / "a.log", out=tmp_path / "a")
-    uninterrupted.store.policy = EVERY_100
+    uninterrupted = service(tmp_path / "a.log", out=tmp_path / "a", checkpoint_frames=100, checkpoint_updates=1)
     deliver(uninterrupted, inputs)
     uninterrupted.teardown()
-    killed = service(tmp_path / "b.log", out=tmp_path / "b")
-    killed.store.policy = EVERY_100
-    deliver(killed, [m for m in inputs if m[1].header.seq <= 230])   # killed at frame 230, after the checkpoint at 200
+    killed = service(tmp_path / "b.log", out=tmp_path / "b", checkpoint_frames=100, checkpoint_updates=1)
+    # Checkpoints come after frame 128 (the first closure's update) and 229. Killed at frame 150:
+    # frames 129..150 (closures among them) are replayed, frames 87..128 answered from the checkpoint.
+    deliver(killed, [m for m in inputs if m[1].header.seq <= 150])
     killed.writer.join()   # (the kill came after its checkpoint was written)
     published = []
     with caplog.at_level(logging.INFO):
-        restarted = service(tmp_path / "b.log", published, out=tmp_path / "b")
-    assert "WARNING" not in caplog.text and "resumed from" in caplog.text
-    restarted.store.policy = EVERY_100
-    deliver(restarted, inputs)   # everything sent again: the 64 frames up to 230 are answered again, the rest applied
+        restarted = service(tmp_path / "b.log", published, out=tmp_path / "b", checkpoint_frames=100, checkpoint_updates=1)
+    assert "WARNING" not in caplog.text and "151 frames (checkpoint after 129, 22 replayed)" in caplog.text
+    deliver(restarted, inputs)   # everything sent again: the 64 frames up to 150 are answered again, the rest applied
     restarted.teardown()
-    assert [seq for seq, *_ in map_poses(published)] == list(range(230 - 63, steps[-1].frame + 1))
+    assert [seq for seq, *_ in map_poses(published)] == list(range(150 - 63, steps[-1].frame + 1))
     for name in ("a.log", "a/loop_closures.csv"):
         assert (tmp_path / name).read_bytes() == (tmp_path / name.replace("a", "b", 1)).read_bytes(), name
     same_state(restarted.map, uninterrupted.map)
