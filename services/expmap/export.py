@@ -2,9 +2,10 @@
 corrected per-frame trajectory in TUM format.
 
 The map log (store.py) holds the map's inputs, not its state, so an export replays them (after
-the log's checkpoint, when it has a usable one) with the parameters the log was written with and reads the result off the rebuilt map. The log is
-only read here, never cut: a service may still be appending to it, and a torn last record
-(a write in progress, or a crash) is skipped with a warning exactly as a restart would skip it.
+the log's checkpoint, when it has a usable one) with the parameters the log was written with
+and reads the result off the rebuilt map. The log is only read here, never cut: a service may
+still be appending to it, and a torn last record (a write in progress, or a crash) is skipped
+with a warning exactly as a restart would skip it.
 """
 
 from __future__ import annotations

@@ -139,7 +139,8 @@ class PoseGraph:
         return self._factor(link, noise if self._kernel is None else self.gtsam.noiseModel.Robust.Create(self._kernel, noise))
 
     def _prior_factor(self):
-        return self.gtsam.PriorFactorPose2(0, self.gtsam.Pose2(*self._prior), self.gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA))
+        noise = self.gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)
+        return self.gtsam.PriorFactorPose2(0, self.gtsam.Pose2(*self._prior), noise)
 
     # --- rebuilding -------------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:

@@ -9,13 +9,14 @@ record, torn last record cut off).
 Replaying a long journal costs the whole run's map work again (minutes after hours of loops),
 so the service also keeps a checkpoint next to it (`<journal>.checkpoint.npz`): when its
 CheckpointPolicy says so (a rule on the map's own work, so two runs of the same inputs
-checkpoint at the same frames and write the same journal) it appends a checkpoint record (`{"checkpoint": n}`: the map was rebased after its first n
-steps, ExperienceMap.rebase), rebases the map, and writes the state the rebase started from
-(temp file, then rename). A restart restores that state and replays only the steps after it;
-a full replay rebases at the same records, so both give the map the uninterrupted run had, bit
-for bit. The journal stays the source of truth: a missing, damaged, stale (another journal's,
-or one cut shorter) or parameter-mismatched checkpoint is skipped with a one-line warning
-naming it, and the whole journal is replayed.
+checkpoint at the same frames and write the same journal) it appends a checkpoint record
+(`{"checkpoint": n}`: the map was rebased after its first n steps, ExperienceMap.rebase),
+rebases the map, and writes the state the rebase started from (temp file, then rename). A
+restart restores that state and replays only the steps after it; a full replay rebases at the
+same records, so both give the map the uninterrupted run had, bit for bit. The journal stays
+the source of truth: a missing, damaged, stale (another journal's, or one cut shorter) or
+parameter-mismatched checkpoint is skipped with a one-line warning naming it, and the whole
+journal is replayed.
 """
 
 from __future__ import annotations
@@ -163,10 +164,10 @@ def load_checkpoint(path: Path, params: MapParams, steps: list[Step], checkpoint
         if meta["params"] != json.loads(json.dumps(asdict(params))):
             raise ValueError("written with other map parameters")
         if count not in checkpoints or meta != _checkpoint_meta(params, steps, count):
-            raise ValueError(f"stale: it follows step {count}, which is not one of this journal's checkpoints")
+            raise ValueError(f"stale: its checkpoint after step {count} is not this journal's")
         extras = {name[len(EXTRA):]: arrays.pop(name) for name in list(arrays) if name.startswith(EXTRA)}
         return ExperienceMap.restore(params, arrays), count, extras
-    except (OSError, EOFError, zipfile.BadZipFile, KeyError, TypeError, ValueError, IndexError) as error:
+    except (OSError, EOFError, zipfile.BadZipFile, KeyError, TypeError, ValueError, IndexError, RuntimeError) as error:
         log.warning("%s: unusable map checkpoint (%s); %s", file, str(error).strip("'") or type(error).__name__, whole)
         return None
 
