@@ -46,7 +46,6 @@ PRIOR_SIGMA = 1e-6          # the first experience anchors the map frame to the 
 RELINEARIZE_THRESHOLD = 0.01
 LINEAR_TOLERANCE = 1e-6     # χ² units: rounding in the closure test's linear-regime check
 REBUILD_PARTS = 8           # a rebuilt solver is given the graph in this many updates (PoseGraph.rebuild)
-TREE_VISIT = 20             # an update's visit of the whole Bayes tree costs about re-eliminating 1 experience in 20
 
 
 class PoseGraph:
@@ -63,11 +62,7 @@ class PoseGraph:
         self._solved = 0                    # experiences 0.._solved-1 are in the solver
         self._refresh: set[int] = set()     # experiences whose estimate the last updates touched
         self._cursor = 0                    # round-robin refresh position
-        # The solver's work since it was (re)built, in experiences re-eliminated: each update's, plus
-        # its visit of the whole tree (gtsam 4.3). On two maps that loop (the stack's journal and
-        # `gridslam bench mapping --build-closure-every 1`) the time of an update was about
-        # 0.023 ms per variable it re-eliminated plus 0.0012 ms per experience in the map.
-        self.work = 0.0
+        self.updates = 0                    # solver updates since the solver was (re)built
         p = experience_map.params
         kernels = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "geman_mcclure": gtsam.noiseModel.mEstimator.GemanMcClure,
                    "dcs": gtsam.noiseModel.mEstimator.DCS, "huber": gtsam.noiseModel.mEstimator.Huber}
@@ -185,14 +180,14 @@ class PoseGraph:
         self._solved = len(theta)
         self._refresh = {int(key) for key in state["refresh"]}
         self._cursor = int(state["refresh_cursor"])
-        self.work = 0.0
+        self.updates = 0
 
     def _update(self, remove: list[int] | None = None):
         result = self.isam.update(self._factors, self._values, remove or [])
         self._solved += self._values.size()
         self._factors, self._values = self.gtsam.NonlinearFactorGraph(), self.gtsam.Values()
         self._refresh.update(result.getMarkedKeys())
-        self.work += result.getVariablesReeliminated() + len(self.map) / TREE_VISIT
+        self.updates += 1
         return result
 
     # --- results ----------------------------------------------------------------------------------
@@ -235,7 +230,7 @@ class Relaxation:
         self._offset = np.zeros((64, 3))
         self._count = 0
         self._degree = np.zeros(64)
-        self.work = 0.0   # links relaxed since the arrays were (re)built
+        self.updates = 0   # relaxations since the arrays were (re)built
 
     def add_experience(self, index: int, pose) -> None:
         if index >= len(self._degree):
@@ -279,7 +274,7 @@ class Relaxation:
         source, target, offset = self._source[:self._count], self._target[:self._count], self._offset[:self._count]
         degree = np.maximum(self._degree[:len(poses)], 1.0)[:, None]
         correction = self.map.params.correction
-        self.work += passes * self._count
+        self.updates += 1
         for _ in range(passes):
             start = poses[source]
             c, s = np.cos(start[:, 2]), np.sin(start[:, 2])

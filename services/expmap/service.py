@@ -4,7 +4,7 @@ as the paper's model (graph.py). Writes loop_closures.csv: every confirmed closu
 measurement and whether the map accepted it.
 
 The map is kept as a journal of its inputs with a checkpoint beside it (store.py): when the
-store's CheckpointPolicy (`checkpoint_work`, `checkpoint_frames`) says so, the map is rebased
+store's CheckpointPolicy (`checkpoint_updates`, `checkpoint_frames`) says so, the map is rebased
 and its state written in a background thread; a restart restores it and replays only the
 frames after it."""
 
@@ -77,14 +77,14 @@ class ExpMapConfig(BaseModel):
         3.0, gt=0, description="Refuse a closure whose innovation exceeds this many standard deviations (optimizer gtsam).")
     closure_iterations: int = Field(4, ge=0, description="Extra solver iterations on a frame with an accepted closure.")
     store: Path = Field(Path("experience_map.log"), description="Append-only map log; a restart resumes from it.")
-    checkpoint_work: float = Field(
-        30.0, ge=0, description="Solver work between checkpoints of the map beside its log, in times the map's size "
-                                "(a restart replays only the frames after the last); 0: none.")
+    checkpoint_updates: int = Field(
+        500, ge=0, description="Solver updates between checkpoints of the map beside its log (a restart replays only the "
+                               "frames after the last); 0: none.")
     checkpoint_frames: int = Field(50, ge=1, description="Fewest frames between checkpoints.")
     out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
 
     def params(self) -> MapParams:
-        return MapParams(**self.model_dump(exclude={"store", "out", "checkpoint_work", "checkpoint_frames"}))
+        return MapParams(**self.model_dump(exclude={"store", "out", "checkpoint_updates", "checkpoint_frames"}))
 
 
 CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "measurement", "forward", "left", "yaw",
@@ -127,7 +127,7 @@ class ExpMapService(Service):
         super().__init__(runtime, instance)
         self.config = config
         self.store = MapStore(config.store, config.params(),
-                              CheckpointPolicy(min_steps=config.checkpoint_frames, work_ratio=config.checkpoint_work))
+                              CheckpointPolicy(min_steps=config.checkpoint_frames, updates=config.checkpoint_updates))
         self.lock = threading.Lock()   # map/snapshot reads on a Zenoh thread while frames are applied
         # Results of the last frames, to answer a re-sent frame that is already in the map.
         self.recent: collections.OrderedDict[int, FrameResult] = collections.OrderedDict()

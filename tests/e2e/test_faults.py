@@ -20,9 +20,9 @@ WORLD = ["--world", "length=6", "--world", "breadth=4"]
 FRAMES = 260
 # Kill each service once the map holds this many frames.
 KILLS = {"source": 30, "egomotion": 60, "gridcells": 90, "loopclosure": 195, "expmap": 225}
-# Map checkpoints every 10 frames or more once closures come (solver work twice the map's size),
-# so that expmap restarts from one and replays the frames after it (services/expmap/store.py).
-ENV = {**os.environ, "GRIDSLAM_EXPMAP_CHECKPOINT_WORK": "2", "GRIDSLAM_EXPMAP_CHECKPOINT_FRAMES": "10"}
+# Map checkpoints every 10 frames or more once closures come (20 solver updates), so that expmap
+# restarts from one and replays the frames after it (services/expmap/store.py).
+ENV = {**os.environ, "GRIDSLAM_EXPMAP_CHECKPOINT_UPDATES": "20", "GRIDSLAM_EXPMAP_CHECKPOINT_FRAMES": "10"}
 
 
 def run_args(out: Path, port: int) -> list[str]:

@@ -347,14 +347,7 @@ def test_other_parameters_are_a_clear_error(tmp_path):
 
 
 # --- checkpoints ------------------------------------------------------------------------------
-class Every100(CheckpointPolicy):
-    """Checkpoints where a test wants them: every 100 frames."""
-
-    def due(self, experience_map: ExperienceMap, steps_since: int) -> bool:
-        return steps_since >= 100
-
-
-EVERY_100 = Every100()
+EVERY_100 = CheckpointPolicy(min_steps=100, max_steps=100)
 
 
 def live_store(path, steps, policy=EVERY_100) -> ExperienceMap:
@@ -457,11 +450,11 @@ def test_an_unusable_checkpoint_is_named_in_a_warning_and_the_whole_journal_repl
 
 
 def test_checkpoints_come_at_the_same_frames_in_two_runs_so_their_journals_are_the_same(tmp_path):
-    # Decided on the map's own work (experiences re-eliminated by the solver), not on time.
+    # Decided on the map's own work (solver updates), not on time.
     _, steps = two_laps_with_a_look_alike()
-    policy = CheckpointPolicy(min_steps=20, work_ratio=3.0)
+    policy = CheckpointPolicy(min_steps=20, updates=12)
     live_store(tmp_path / "a.log", steps, policy)
-    live_store(tmp_path / "b.log", steps, CheckpointPolicy(min_steps=40, work_ratio=3.0))
+    live_store(tmp_path / "b.log", steps, CheckpointPolicy(min_steps=20, updates=6))
     assert len(MapStore(tmp_path / "a.log", PARAMS).checkpoints) >= 2   # the policy does checkpoint this run
     live_store(tmp_path / "c.log", steps, policy)
     assert (tmp_path / "a.log").read_bytes() == (tmp_path / "c.log").read_bytes()
@@ -619,17 +612,17 @@ def test_loop_closures_csv_says_which_closures_the_map_kept_and_survives_a_resta
 def test_a_service_killed_after_a_checkpoint_restores_it_and_writes_what_the_uninterrupted_one_wrote(tmp_path, caplog):
     frames, steps = two_laps_with_a_look_alike()
     inputs = messages(steps)
-    uninterrupted = service(tmp_path / "a.log", out=tmp_path / "a", checkpoint_frames=100, checkpoint_work=1e-9)
+    uninterrupted = service(tmp_path / "a.log", out=tmp_path / "a", checkpoint_frames=100, checkpoint_updates=1)
     deliver(uninterrupted, inputs)
     uninterrupted.teardown()
-    killed = service(tmp_path / "b.log", out=tmp_path / "b", checkpoint_frames=100, checkpoint_work=1e-9)
+    killed = service(tmp_path / "b.log", out=tmp_path / "b", checkpoint_frames=100, checkpoint_updates=1)
     # Checkpoints come after frame 128 (the first closure's update) and 229. Killed at frame 150:
     # frames 129..150 (closures among them) are replayed, frames 87..128 answered from the checkpoint.
     deliver(killed, [m for m in inputs if m[1].header.seq <= 150])
     killed.writer.join()   # (the kill came after its checkpoint was written)
     published = []
     with caplog.at_level(logging.INFO):
-        restarted = service(tmp_path / "b.log", published, out=tmp_path / "b", checkpoint_frames=100, checkpoint_work=1e-9)
+        restarted = service(tmp_path / "b.log", published, out=tmp_path / "b", checkpoint_frames=100, checkpoint_updates=1)
     assert "WARNING" not in caplog.text and "151 frames (checkpoint after 129, 22 replayed)" in caplog.text
     deliver(restarted, inputs)   # everything sent again: the 64 frames up to 150 are answered again, the rest applied
     restarted.teardown()
