@@ -78,21 +78,20 @@ def header(params: MapParams) -> dict:
 
 @dataclass(frozen=True)
 class CheckpointPolicy:
-    """When to checkpoint: at least `min_steps` frames after the last checkpoint, once the
-    optimiser has made `updates` updates since it, or after `max_steps` frames. An iSAM2 update
-    costs time in proportion to the map (gtsam 4.3 visits the whole Bayes tree), and so does
-    rebasing: on the looping stack's journal, rebasing 2800 experiences cost 0.9 s, about 230
-    of the updates around it (docs/reliability.md). 500 updates keep the replay after a restart
-    to about two rebases' time and the rebases to about a third of the map's time, whatever
-    the map's size. `updates` 0: no checkpoints."""
+    """When to checkpoint: once the optimiser has made `updates` updates since the last
+    checkpoint, at least `min_steps` frames after it. An iSAM2 update costs time in proportion to
+    the map (gtsam 4.3 visits the whole Bayes tree), and so does rebasing: on the looping stack's
+    journal, rebasing 2800 experiences cost 0.9 s, about 230 of the updates around it
+    (docs/reliability.md). 500 updates keep the replay after a restart to about two rebases'
+    time and the rebases to about a third of the map's time. A map with few closures makes few
+    updates and is not checkpointed: its frames are cheap, and replaying them costs about what
+    rebuilding it from a checkpoint would (docs/reliability.md). `updates` 0: no checkpoints."""
 
     min_steps: int = 50
-    max_steps: int = 5000
     updates: int = 500
 
     def due(self, experience_map: ExperienceMap, steps_since: int) -> bool:
-        return self.updates > 0 and steps_since >= self.min_steps and \
-            (steps_since >= self.max_steps or experience_map.optimizer.updates >= self.updates)
+        return 0 < self.updates <= experience_map.optimizer.updates and steps_since >= self.min_steps
 
 
 def parse_records(records: list[dict]) -> tuple[list[Step], list[int]]:

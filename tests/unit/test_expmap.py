@@ -347,7 +347,14 @@ def test_other_parameters_are_a_clear_error(tmp_path):
 
 
 # --- checkpoints ------------------------------------------------------------------------------
-EVERY_100 = CheckpointPolicy(min_steps=100, max_steps=100)
+class Every100(CheckpointPolicy):
+    """Checkpoints where a test wants them: every 100 frames."""
+
+    def due(self, experience_map: ExperienceMap, steps_since: int) -> bool:
+        return steps_since >= 100
+
+
+EVERY_100 = Every100()
 
 
 def live_store(path, steps, policy=EVERY_100) -> ExperienceMap:
