@@ -28,9 +28,8 @@
 Both write the map's published poses (ExperienceMap._poses) and report which experiences moved,
 and both can be rebuilt from the map's state (`state`, `rebuild`: ExperienceMap.rebase). The pose
 graph is rebuilt as a fresh iSAM2 given every factor the graph holds (the prior, the odometric
-links, the accepted closures under their kernel), at the linearisation point it
-had, with the experiences not yet in the solver added at their composed poses, in a few updates
-oldest experiences first.
+links, the accepted closures under their kernel) at the linearisation point it had, with the
+experiences not yet in the solver at their composed poses, in a few updates, oldest first.
 """
 
 from __future__ import annotations
