@@ -13,8 +13,20 @@ For each size N, in a fresh process (so that its resident memory is its own):
   then `--frames` more frames timed, in which revisits confirm a closure on `--closure-frames`
   consecutive frames of every 100 (a closure burst, as a revisit gives).
 
+- **restart**: the same map built again as the expmap service builds it (each frame journaled,
+  checkpoints as its CheckpointPolicy decides, services/expmap/store.py), then restored from
+  that journal `--restarts` times as a restarted service restores it: the journal read, the
+  checkpoint loaded, the frames after it replayed. With `--replay`, also timed once: the whole
+  journal replayed without checkpoints (what a restart cost before them).
+
 The JSON (`--json`) is a list of objects with the keys size, match_ms_p50, match_ms_p99,
-map_ms_p50, map_ms_p99, rss_mib (and map_closure_ms_p50: the median of the closure frames).
+map_ms_p50, map_ms_p99, rss_mib (and map_closure_ms_p50: the median of the closure frames),
+restart_ms_p50 (journal_ms_p50 of it reading the journal), tail_frames, build_s (the map built
+with its checkpoints), replay_s (with `--replay`). `--restart-only` skips templates and timed frames.
+
+`--journal FILE --frames-list 1000,2000,...` measures the restart on the first N frames of a
+recorded map journal instead (re-journaled with checkpoints as the service would have written
+them), e.g. one of the looping docker-compose stack.
 """
 
 from __future__ import annotations
@@ -24,6 +36,7 @@ import json
 import math
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -106,6 +119,74 @@ def measure(size: int, frames: int, build_every: int, burst: int, seed: int) -> 
             "templates": len(templates)}
 
 
+def measure_restart(steps: list, params, restarts: int, whole: bool) -> dict:
+    """Journal `steps` as the service does, then restart from the journal `restarts` times (and,
+    with `whole`, replay all its steps without checkpoints once)."""
+    from services.expmap.graph import ExperienceMap
+    from services.expmap.store import MapStore, replay
+
+    with tempfile.TemporaryDirectory(prefix="gridslam-restart-") as folder:
+        path = Path(folder) / "experience_map.log"
+        store, experience_map = MapStore(path, params), ExperienceMap(params)
+        started = time.perf_counter()
+        for step in steps:
+            store.append(step)
+            step.apply(experience_map)
+            if store.checkpoint_due(experience_map):
+                store.write_checkpoint(*store.checkpoint(experience_map), {})
+        build_s = time.perf_counter() - started
+        store.close()
+        journal_ms, restart_ms = [], []
+        for _ in range(restarts):
+            started = time.perf_counter()
+            store = MapStore(path, params)
+            opened = time.perf_counter()
+            store.rebuild()
+            restart_ms.append(1e3 * (time.perf_counter() - started))
+            journal_ms.append(1e3 * (opened - started))
+            store.close()
+        checkpoints = store.checkpoints
+        started = time.perf_counter()
+        if whole:
+            replay(ExperienceMap(params), steps, [])
+        replay_s = time.perf_counter() - started if whole else None
+    return {"frames": len(steps), "experiences": len(experience_map), "links": len(experience_map.links),
+            "checkpoints": len(checkpoints), "tail_frames": len(steps) - (checkpoints[-1] if checkpoints else 0),
+            "build_s": build_s, "journal_ms_p50": float(np.median(journal_ms)),
+            "restart_ms_p50": float(np.median(restart_ms)), "restart_ms_max": float(np.max(restart_ms)), "replay_s": replay_s}
+
+
+def stream_steps(size: int, build_every: int, seed: int) -> list:
+    """The benchmark's map of `size` experiences as journal steps."""
+    from services.expmap.store import Step
+
+    return [Step(frame, 0.05 * frame, odometry, template, closure)
+            for frame, odometry, template, closure, _ in map_stream(size, 0, build_every, 0, seed)]
+
+
+def journal_restarts(journal: Path, frames: list[int], restarts: int, whole: bool) -> int:
+    """The restart figures of the first N frames of a recorded journal, one N per row."""
+    from services.expmap.export import read_log
+
+    log = read_log(journal)
+    print(f"{journal}: restarts from the first N of its {len(log.steps)} frames, re-journaled with checkpoints; "
+          f"medians of {restarts}")
+    print()
+    print("| frames | experiences, links | map built, with checkpoints (s) | checkpoints | frames after the last "
+          "| restart p50 (ms) | max | of which the journal | whole journal replayed, no checkpoints (s) |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for count in frames:
+        row = measure_restart(log.steps[:count], log.params, restarts, whole)
+        print(f"| {row['frames']:,} | {row['experiences']:,}, {row['links']:,} | {row['build_s']:.1f} | {row['checkpoints']} "
+              f"| {row['tail_frames']} | {row['restart_ms_p50']:.0f} | {row['restart_ms_max']:.0f} "
+              f"| {row['journal_ms_p50']:.0f} | {replayed(row)} |", flush=True)
+    return 0
+
+
+def replayed(row: dict) -> str:
+    return "—" if row["replay_s"] is None else f"{row['replay_s']:.1f}"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="gridslam bench mapping", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="1000,10000,100000", help="comma-separated map sizes (templates and experiences)")
@@ -113,27 +194,57 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--closure-frames", type=int, default=10, help="frames of every 100 timed that confirm a closure")
     parser.add_argument("--build-closure-every", type=int, default=2000, help="a closure every this many frames while growing")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--restarts", type=int, default=5, help="restarts timed per size (medians)")
+    parser.add_argument("--replay", action="store_true", help="also time the whole journal replayed without checkpoints")
+    parser.add_argument("--restart-only", action="store_true", help="time restarts only (no templates, no timed frames)")
     parser.add_argument("--json", type=Path, help="write the results as a JSON list to this file")
+    parser.add_argument("--journal", type=Path, help="time restarts from this recorded map journal instead")
+    parser.add_argument("--frames-list", default="1000,2000,4000,8000",
+                        help="with --journal: comma-separated numbers of its first frames to restart from")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)   # internal: measure one size here, print JSON
     args = parser.parse_args(argv)
+    if args.journal is not None:
+        return journal_restarts(args.journal, [int(v) for v in args.frames_list.split(",") if v.strip()], args.restarts,
+                                args.replay)
     if args.one is not None:
-        print(json.dumps(measure(args.one, args.frames, args.build_closure_every, args.closure_frames, args.seed)))
+        from services.expmap.graph import MapParams
+
+        row = {} if args.restart_only else measure(args.one, args.frames, args.build_closure_every, args.closure_frames,
+                                                   args.seed)
+        restart = measure_restart(stream_steps(args.one, args.build_closure_every, args.seed), MapParams(), args.restarts,
+                                  args.replay)
+        print(json.dumps({"size": args.one, **row, **restart}))
         return 0
     sizes = [int(v) for v in args.sizes.split(",") if v.strip()]
     results = []
-    print(f"{args.frames} frames timed per size; closures on {args.closure_frames} of every 100; medians and p99 in ms")
-    print()
-    print("| size | match p50 | match p99 | map p50 | map p99 | map, closure frames p50 | RSS MiB |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    if args.restart_only:
+        print(f"restarts: medians of {args.restarts}")
+        print()
+        print("| size | frames, experiences, links | map built, with checkpoints (s) | checkpoints | frames after the last "
+              "| restart p50 (ms) | max | of which the journal | whole journal replayed, no checkpoints (s) |")
+        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    else:
+        print(f"{args.frames} frames timed per size; closures on {args.closure_frames} of every 100; medians and p99 in ms")
+        print()
+        print("| size | match p50 | match p99 | map p50 | map p99 | map, closure frames p50 | RSS MiB | restart p50 "
+              "(of which the journal) | frames after the checkpoint |")
+        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for size in sizes:
         command = [sys.executable, "-m", "services.cli", "bench", "mapping", "--one", str(size), "--frames", str(args.frames),
                    "--closure-frames", str(args.closure_frames), "--build-closure-every", str(args.build_closure_every),
-                   "--seed", str(args.seed)]
+                   "--seed", str(args.seed), "--restarts", str(args.restarts)] + \
+            ["--replay"] * args.replay + ["--restart-only"] * args.restart_only
         row = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
         results.append(row)
+        if args.restart_only:
+            print(f"| {size:,} | {row['frames']:,}, {row['experiences']:,}, {row['links']:,} | {row['build_s']:.1f} "
+                  f"| {row['checkpoints']} | {row['tail_frames']} | {row['restart_ms_p50']:.0f} | {row['restart_ms_max']:.0f} "
+                  f"| {row['journal_ms_p50']:.0f} | {replayed(row)} |", flush=True)
+            continue
         print(f"| {size:,} | {row['match_ms_p50']:.2f} | {row['match_ms_p99']:.2f} | {row['map_ms_p50']:.2f} "
-              f"| {row['map_ms_p99']:.2f} | {row['map_closure_ms_p50'] or 0:.2f} | {row['rss_mib']:.0f} |", flush=True)
-    if len(results) > 1:
+              f"| {row['map_ms_p99']:.2f} | {row['map_closure_ms_p50'] or 0:.2f} | {row['rss_mib']:.0f} "
+              f"| {row['restart_ms_p50']:.0f} ({row['journal_ms_p50']:.0f}) | {row['tail_frames']} |", flush=True)
+    if len(results) > 1 and not args.restart_only:
         first, last = results[0], results[-1]
         print()
         print(f"{last['size']:,} vs {first['size']:,}: matching ×{last['match_ms_p50'] / first['match_ms_p50']:.2f}, "

@@ -1,10 +1,11 @@
 """Export of a persisted experience map: the graph (experiences and links) as JSON and the
 corrected per-frame trajectory in TUM format.
 
-The map log (store.py) holds the map's inputs, not its state, so an export replays them with
-the parameters the log was written with and reads the result off the rebuilt map. The log is
-only read here, never cut: a service may still be appending to it, and a torn last record
-(a write in progress, or a crash) is skipped with a warning exactly as a restart would skip it.
+The map log (store.py) holds the map's inputs, not its state, so an export replays them (after
+the log's checkpoint, when it has a usable one) with the parameters the log was written with
+and reads the result off the rebuilt map. The log is only read here, never cut: a service may
+still be appending to it, and a torn last record (a write in progress, or a crash) is skipped
+with a warning exactly as a restart would skip it.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.graph import ExperienceMap, MapParams
-from services.expmap.store import FORMAT, VERSION, Step
+from services.expmap.store import FORMAT, VERSION, Step, parse_records, rebuild
 
 log = logging.getLogger(__name__)
 
@@ -42,12 +43,11 @@ class MapLog:
     params: MapParams
     steps: list[Step]
     torn_last_record: bool = False
+    checkpoints: list[int] = field(default_factory=list)   # after how many steps the map was rebased
 
     def rebuild(self) -> ExperienceMap:
-        experience_map = ExperienceMap(self.params)
-        for step in self.steps:
-            step.apply(experience_map)
-        return experience_map
+        """The map: from the log's checkpoint file and the steps after it, or from all its steps."""
+        return rebuild(self.path, self.params, self.steps, self.checkpoints)[0]
 
 
 def read_log(path, params: MapParams | None = None) -> MapLog:
@@ -69,13 +69,11 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
                              "export it with the same preset or config (or with neither: the log's own)")
     if records[0].get("version") != VERSION:
         raise MapExportError(f"{path}: a version {records[0].get('version')} map log; this gridslam reads version {VERSION}")
-    steps = []
-    for number, record in enumerate(records[1:], start=2):
-        try:
-            steps.append(Step.from_record(record))
-        except (KeyError, TypeError, ValueError, IndexError):
-            raise MapExportError(f"{path}: line {number}: not a map record") from None
-    return MapLog(path, logged, steps, torn)
+    try:
+        steps, checkpoints = parse_records(records[1:])
+    except ValueError as error:
+        raise MapExportError(f"{path}: {error}") from None
+    return MapLog(path, logged, steps, torn, checkpoints)
 
 
 def graph_dict(experience_map: ExperienceMap) -> dict:

@@ -29,7 +29,13 @@ are refreshed for what the solver re-eliminated plus a fixed number of others pe
 frames. `final_poses()` gives every experience's best estimate (for exports).
 
 Everything is deterministic: the same inputs in the same order give the same map, which is
-what lets a restarted service rebuild its map by replaying the log of its inputs.
+what lets a restarted service rebuild its map by replaying the log of its inputs. `rebase()`
+is part of those inputs: it returns the map's whole state as arrays (`state()`) and rebuilds the
+optimiser from it (gtsam: a fresh iSAM2 given every factor in one update, at the current
+linearisation point), so a map restored from that state (`ExperienceMap.restore`) goes on
+exactly, bit for bit, as the rebased one. iSAM2's incremental state itself cannot be saved, and
+a batch solve differs from it by up to a millimetre; rebasing the live map at the same point
+makes the restored map the same map (services/expmap/store.py writes such checkpoints).
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ OPTIMIZERS = ("gtsam", "ratslam")
 CLOSURES = ("metric", "ratslam")
 KERNELS = ("cauchy", "geman_mcclure", "dcs", "huber", "none")
 METHODS = ("stereo", "mono", "scanline")
+FATES = ("accepted", "rejected", "unmeasured", "unmatched")   # what becomes of a confirmed closure
 
 
 @dataclass(frozen=True)
@@ -210,8 +217,9 @@ class ExperienceMap:
         self.offset_covariance = np.zeros((3, 3))       # of the offset from `current` (right-hand tangent)
         self.frames: list[tuple[int, int, tuple[float, float, float]]] = []   # (frame, experience, offset)
         self.last_frame: int | None = None
-        self.closures = {"accepted": 0, "rejected": 0, "unmeasured": 0, "unmatched": 0}
+        self.closures = dict.fromkeys(FATES, 0)
         self.decisions: list[tuple[int, int, str]] = []   # (frame, matched frame, what became of its closure)
+        self.residuals: list[float | None] = []         # each decision's closure residual, standard deviations
         self._frame_at: dict[int, int] = {}             # frame → its row of `frames`
         self._by_template: dict[int, int] = {}          # template → its latest experience
         from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
@@ -266,6 +274,7 @@ class ExperienceMap:
         if result.closure is not None:
             self.closures[result.closure] += 1
             self.decisions.append((frame, closure.matched_frame, result.closure))
+            self.residuals.append(result.residual)
         moved = self.optimizer.solve(closure_frame=result.closure in ("accepted", "rejected"))
         result.moved = [i for i in moved if i not in result.new_experiences]
         result.experience = self.current
@@ -289,6 +298,69 @@ class ExperienceMap:
         count = len(self.templates)
         return MapState(self.last_frame, self._poses[:count].copy(), self.templates[:count], self.created[:count],
                         self.links[:])
+
+    # --- checkpoints ------------------------------------------------------------------------------
+    def state(self) -> dict[str, np.ndarray]:
+        """The map's whole state as arrays (copies), the optimiser's included: what `restore` takes."""
+        if self.current is None:
+            raise ValueError("an empty map has no state to save")
+        links = self.links
+        return {"poses": self.poses.copy(), "templates": np.array(self.templates, dtype=np.int64),
+                "created": np.array(self.created, dtype=np.int64),
+                "links": np.array([(k.source, k.target, k.frame, k.loop_closure, k.accepted) for k in links],
+                                  dtype=np.int64).reshape(-1, 5),
+                "link_transforms": np.array([k.transform for k in links], dtype=float).reshape(-1, 3),
+                "frames": np.array([(frame, experience) for frame, experience, _ in self.frames], dtype=np.int64).reshape(-1, 2),
+                "frame_offsets": np.array([offset for _, _, offset in self.frames], dtype=float).reshape(-1, 3),
+                "current": np.array([self.current, self.last_frame], dtype=np.int64),
+                "odometry": np.array([self.anchor, self.last_odometry], dtype=float),
+                "offset_covariance": self.offset_covariance.copy(),
+                "closure_counts": np.array([self.closures[fate] for fate in FATES], dtype=np.int64),
+                "decisions": np.array([(frame, matched, FATES.index(fate)) for frame, matched, fate in self.decisions],
+                                      dtype=np.int64).reshape(-1, 3),
+                "residuals": np.array([np.nan if r is None else r for r in self.residuals], dtype=float),
+                **self.optimizer.state()}
+
+    @classmethod
+    def restore(cls, params: MapParams, state: dict[str, np.ndarray]) -> ExperienceMap:
+        """The map a `state()` describes, its optimiser rebuilt as `rebase` rebuilds it (KeyError,
+        ValueError or IndexError when `state` is no map state)."""
+        experience_map = cls(params)
+        experience_map._load(state)
+        experience_map.optimizer.rebuild(state)
+        return experience_map
+
+    def rebase(self) -> dict[str, np.ndarray]:
+        """Rebuild the optimiser from the map's state and return that state: from here on this map
+        and `restore(params, state)` are the same map."""
+        state = self.state()
+        self.optimizer.rebuild(state)
+        return state
+
+    def _load(self, state: dict[str, np.ndarray]) -> None:
+        poses = np.asarray(state["poses"], dtype=float)
+        self._poses = np.zeros((max(64, 2 * len(poses)), 3))
+        self._poses[:len(poses)] = poses
+        self.templates = [int(v) for v in state["templates"]]
+        self.created = [int(v) for v in state["created"]]
+        if not len(poses) == len(self.templates) == len(self.created):
+            raise ValueError("experience arrays of different lengths")
+        self.links = [Link(int(s), int(t), *(float(v) for v in transform), int(frame), bool(closure), bool(accepted))
+                      for (s, t, frame, closure, accepted), transform in zip(state["links"], state["link_transforms"],
+                                                                             strict=True)]
+        self.frames = [(int(frame), int(experience), tuple(float(v) for v in offset))
+                       for (frame, experience), offset in zip(state["frames"], state["frame_offsets"], strict=True)]
+        self.current, self.last_frame = (int(v) for v in state["current"])
+        anchor, last = state["odometry"]
+        self.anchor, self.last_odometry = tuple(float(v) for v in anchor), tuple(float(v) for v in last)
+        self.offset_covariance = np.array(state["offset_covariance"], dtype=float).reshape(3, 3)
+        self.closures = {fate: int(count) for fate, count in zip(FATES, state["closure_counts"], strict=True)}
+        self.decisions = [(int(frame), int(matched), FATES[fate]) for frame, matched, fate in state["decisions"]]
+        self.residuals = [None if np.isnan(r) else float(r) for r in state["residuals"]]
+        if len(self.residuals) != len(self.decisions):
+            raise ValueError("decisions and residuals of different lengths")
+        self._frame_at = {frame: row for row, (frame, _, _) in enumerate(self.frames)}
+        self._by_template = {template: index for index, template in enumerate(self.templates)}
 
     # --- closures ---------------------------------------------------------------------------------
     def _place_of(self, closure: ClosureInput) -> tuple[int | None, tuple[float, float, float] | None]:

@@ -25,7 +25,11 @@
   over its links, so the result does not depend on link order and the vectorised update is
   stable. Every closure is accepted (the paper's model); a pass costs one sweep over all links.
 
-Both write the map's published poses (ExperienceMap._poses) and report which experiences moved.
+Both write the map's published poses (ExperienceMap._poses) and report which experiences moved,
+and both can be rebuilt from the map's state (`state`, `rebuild`: ExperienceMap.rebase). The pose
+graph is rebuilt as a fresh iSAM2 given every factor the graph holds (the prior, the odometric
+links, the accepted closures under their kernel) at the linearisation point it had, with the
+experiences not yet in the solver at their composed poses, in a few updates, oldest first.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ REFRESH_PER_SOLVE = 256
 PRIOR_SIGMA = 1e-6          # the first experience anchors the map frame to the odometry frame
 RELINEARIZE_THRESHOLD = 0.01
 LINEAR_TOLERANCE = 1e-6     # χ² units: rounding in the closure test's linear-regime check
+REBUILD_PARTS = 8           # a rebuilt solver is given the graph in this many updates (PoseGraph.rebuild)
 
 
 class PoseGraph:
@@ -48,35 +53,43 @@ class PoseGraph:
 
         self.gtsam = gtsam
         self.map = experience_map
-        params = gtsam.ISAM2Params()
-        params.setFactorization("QR")
-        params.relinearizeSkip = 1
-        params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
-        params.enablePartialRelinearizationCheck = True
-        self.isam = gtsam.ISAM2(params)
+        self.isam = self._new_isam()
+        self.covariances: list[np.ndarray] = []   # of each of the map's links, in its order
+        self._prior: tuple[float, float, float] | None = None
         self._factors = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
         self._solved = 0                    # experiences 0.._solved-1 are in the solver
         self._refresh: set[int] = set()     # experiences whose estimate the last updates touched
         self._cursor = 0                    # round-robin refresh position
+        self.updates = 0                    # solver updates since the solver was (re)built
         p = experience_map.params
         kernels = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "geman_mcclure": gtsam.noiseModel.mEstimator.GemanMcClure,
                    "dcs": gtsam.noiseModel.mEstimator.DCS, "huber": gtsam.noiseModel.mEstimator.Huber}
         self._kernel = kernels[p.robust_kernel].Create(p.kernel_width) if p.robust_kernel in kernels else None
 
+    def _new_isam(self):
+        params = self.gtsam.ISAM2Params()
+        params.setFactorization("QR")
+        params.relinearizeSkip = 1
+        params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
+        params.enablePartialRelinearizationCheck = True
+        return self.gtsam.ISAM2(params)
+
     # --- building ---------------------------------------------------------------------------------
     def add_experience(self, index: int, pose) -> None:
         self._values.insert(index, self.gtsam.Pose2(*pose))
         if index == 0:
-            self._factors.add(self.gtsam.PriorFactorPose2(0, self.gtsam.Pose2(*pose),
-                                                          self.gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+            self._prior = tuple(pose)
+            self._factors.add(self._prior_factor())
 
     def add_link(self, link: Link, covariance: np.ndarray) -> None:
+        self.covariances.append(covariance)
         self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
 
     def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, float]:
         """Test a closure against the graph and keep it when it passes; (accepted, test statistic
         in standard deviations)."""
+        self.covariances.append(covariance)
         information = np.linalg.inv(covariance)
         innovation = self._residual(link, self._pose(link.source), self.isam.calculateEstimatePose2(link.target)
                                     if link.target < self._solved else self._pose(link.target))
@@ -89,8 +102,7 @@ class PoseGraph:
         accepted = float(residual @ information @ residual) - LINEAR_TOLERANCE <= statistic <= self.map.params.closure_gate ** 2
         statistic = float(np.sqrt(max(statistic, 0.0)))
         if accepted and self._kernel is not None:   # kept under the robust kernel
-            self._factors.add(self._factor(link, self.gtsam.noiseModel.Robust.Create(
-                self._kernel, self.gtsam.noiseModel.Gaussian.Covariance(covariance))))
+            self._factors.add(self._closure_factor(link, covariance))
             self._update(remove=[index])
         elif not accepted:   # refused: out of the graph, and the estimate settles back without it
             self._solve(remove=[index])
@@ -115,11 +127,66 @@ class PoseGraph:
     def _factor(self, link: Link, noise):
         return self.gtsam.BetweenFactorPose2(link.source, link.target, self.gtsam.Pose2(*link.transform), noise)
 
+    def _closure_factor(self, link: Link, covariance: np.ndarray):
+        """An accepted closure's factor as the graph keeps it: under the robust kernel, if any."""
+        noise = self.gtsam.noiseModel.Gaussian.Covariance(covariance)
+        return self._factor(link, noise if self._kernel is None else self.gtsam.noiseModel.Robust.Create(self._kernel, noise))
+
+    def _prior_factor(self):
+        noise = self.gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)
+        return self.gtsam.PriorFactorPose2(0, self.gtsam.Pose2(*self._prior), noise)
+
+    # --- rebuilding -------------------------------------------------------------------------------
+    def state(self) -> dict[str, np.ndarray]:
+        """The solver's part of the map's state: linearisation point (the composed pose of an
+        experience not yet in the solver), the prior, the links' covariances, the refresh plan."""
+        solved = self.gtsam.utilities.extractPose2(self.isam.getLinearizationPoint()) if self._solved else np.zeros((0, 3))
+        pending = range(self._solved, len(self.map))   # the next update would have refreshed them
+        return {"theta": np.concatenate([solved, self.map.poses[self._solved:]]), "prior": np.array(self._prior),
+                "covariances": np.array(self.covariances, dtype=float).reshape(-1, 3, 3),
+                "refresh": np.array(sorted(self._refresh.union(pending)), dtype=np.int64),
+                "refresh_cursor": np.array(self._cursor, dtype=np.int64)}
+
+    def rebuild(self, state: dict[str, np.ndarray]) -> None:
+        """A fresh iSAM2 holding the graph `state` and the map's links describe, given to it in
+        REBUILD_PARTS updates, oldest experiences first. (In one update it would order the whole
+        graph anew, and on a map that loops the updates after it re-eliminate far more: the 200
+        frames after 8000 of the looping stack's journal took 61 ms a frame instead of 11. In
+        parts, recent experiences stay near the root of the Bayes tree, as the live updates
+        keep them: after 9000 frames, 10.0 ms a frame, 12.3 without a rebuild.)"""
+        theta, covariances = state["theta"], state["covariances"]
+        if len(theta) != len(self.map) or len(covariances) != len(self.map.links):
+            raise ValueError("solver state of another map size")
+        self._prior = tuple(float(v) for v in state["prior"])
+        self.covariances = list(covariances)
+        factors = [(0, self._prior_factor())]   # (the newest experience it links, factor)
+        for link, covariance in zip(self.map.links, self.covariances):
+            if link.accepted:
+                factors.append((max(link.source, link.target), self._closure_factor(link, covariance) if link.loop_closure
+                                else self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance))))
+        factors.sort(key=lambda item: item[0])
+        self.isam = self._new_isam()
+        size, added = -(-len(theta) // REBUILD_PARTS), 0
+        for start in range(0, len(theta), size):
+            graph, values = self.gtsam.NonlinearFactorGraph(), self.gtsam.Values()
+            for key in range(start, min(start + size, len(theta))):
+                values.insert(key, self.gtsam.Pose2(*theta[key]))
+            while added < len(factors) and factors[added][0] < start + size:
+                graph.add(factors[added][1])
+                added += 1
+            self.isam.update(graph, values)
+        self._factors, self._values = self.gtsam.NonlinearFactorGraph(), self.gtsam.Values()
+        self._solved = len(theta)
+        self._refresh = {int(key) for key in state["refresh"]}
+        self._cursor = int(state["refresh_cursor"])
+        self.updates = 0
+
     def _update(self, remove: list[int] | None = None):
         result = self.isam.update(self._factors, self._values, remove or [])
         self._solved += self._values.size()
         self._factors, self._values = self.gtsam.NonlinearFactorGraph(), self.gtsam.Values()
         self._refresh.update(result.getMarkedKeys())
+        self.updates += 1
         return result
 
     # --- results ----------------------------------------------------------------------------------
@@ -154,11 +221,15 @@ class PoseGraph:
 class Relaxation:
     def __init__(self, experience_map: ExperienceMap):
         self.map = experience_map
+        self._clear()
+
+    def _clear(self) -> None:
         self._source = np.zeros(64, dtype=np.int64)
         self._target = np.zeros(64, dtype=np.int64)
         self._offset = np.zeros((64, 3))
         self._count = 0
         self._degree = np.zeros(64)
+        self.updates = 0   # relaxations since the arrays were (re)built
 
     def add_experience(self, index: int, pose) -> None:
         if index >= len(self._degree):
@@ -178,6 +249,16 @@ class Relaxation:
         self.add_link(link)
         return True, None
 
+    def state(self) -> dict[str, np.ndarray]:
+        return {}   # the map's poses and links are all there is
+
+    def rebuild(self, state: dict[str, np.ndarray]) -> None:
+        self._clear()
+        for index in range(len(self.map)):
+            self.add_experience(index, None)
+        for link in self.map.links:
+            self.add_link(link)
+
     def solve(self, closure_frame: bool) -> list[int]:
         p = self.map.params
         before = self.map.poses.copy()
@@ -192,6 +273,7 @@ class Relaxation:
         source, target, offset = self._source[:self._count], self._target[:self._count], self._offset[:self._count]
         degree = np.maximum(self._degree[:len(poses)], 1.0)[:, None]
         correction = self.map.params.correction
+        self.updates += 1
         for _ in range(passes):
             start = poses[source]
             c, s = np.cos(start[:, 2]), np.sin(start[:, 2])

@@ -1,7 +1,12 @@
 """expmap: the experience map of grid-cell odometry, view templates and loop closures: a pose
 graph (gtsam iSAM2) with metric closures by default, RatSLAM's relaxation and snap-to-experience
 as the paper's model (graph.py). Writes loop_closures.csv: every confirmed closure, its
-measurement and whether the map accepted it."""
+measurement and whether the map accepted it.
+
+The map is kept as a journal of its inputs with a checkpoint beside it (store.py): when the
+store's CheckpointPolicy (`checkpoint_updates`, `checkpoint_frames`) says so, the map is rebased
+and its state written in a background thread; a restart restores it and replays only the
+frames after it."""
 
 from __future__ import annotations
 
@@ -10,10 +15,12 @@ import collections
 import csv
 import logging
 import threading
+import time
 from dataclasses import asdict
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, ViewTemplate
@@ -23,7 +30,7 @@ from services.common.errors import DataError, PersistenceError
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
-from services.expmap.store import MapStore, Step
+from services.expmap.store import CheckpointPolicy, MapStore, Step
 
 log = logging.getLogger(__name__)
 
@@ -70,10 +77,14 @@ class ExpMapConfig(BaseModel):
         3.0, gt=0, description="Refuse a closure whose innovation exceeds this many standard deviations (optimizer gtsam).")
     closure_iterations: int = Field(4, ge=0, description="Extra solver iterations on a frame with an accepted closure.")
     store: Path = Field(Path("experience_map.log"), description="Append-only map log; a restart resumes from it.")
+    checkpoint_updates: int = Field(
+        500, ge=0, description="Solver updates between checkpoints of the map beside its log (a restart replays only the "
+                               "frames after the last); 0: none.")
+    checkpoint_frames: int = Field(50, ge=1, description="Fewest frames between checkpoints.")
     out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
 
     def params(self) -> MapParams:
-        return MapParams(**self.model_dump(exclude={"store", "out"}))
+        return MapParams(**self.model_dump(exclude={"store", "out", "checkpoint_updates", "checkpoint_frames"}))
 
 
 CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "measurement", "forward", "left", "yaw",
@@ -88,6 +99,14 @@ def experience_message(experience_map: ExperienceMap, index: int) -> Experience:
 
 def link_message(link) -> Link:
     return Link(**asdict(link))
+
+
+def closure_row(step: Step, fate: str, residual: float | None) -> tuple:
+    """loop_closures.csv's row of a frame whose closure the map decided on."""
+    c = step.closure
+    return (step.frame, c.matched_frame, c.matched_template, c.votes, c.method or "none", f"{c.forward:.4f}",
+            f"{c.left:.4f}", f"{c.yaw:.5f}", c.inliers, c.geometry_error, "" if residual is None else f"{residual:.3f}",
+            str(fate == "accepted").lower())
 
 
 def closure_input(message: LoopClosure) -> ClosureInput:
@@ -107,17 +126,21 @@ class ExpMapService(Service):
     def __init__(self, runtime: RuntimeConfig, config: ExpMapConfig, instance: str | None = None):
         super().__init__(runtime, instance)
         self.config = config
-        self.store = MapStore(config.store, config.params())
-        self.map = ExperienceMap(config.params())
+        self.store = MapStore(config.store, config.params(),
+                              CheckpointPolicy(min_steps=config.checkpoint_frames, updates=config.checkpoint_updates))
         self.lock = threading.Lock()   # map/snapshot reads on a Zenoh thread while frames are applied
         # Results of the last frames, to answer a re-sent frame that is already in the map.
         self.recent: collections.OrderedDict[int, FrameResult] = collections.OrderedDict()
         self.csv_path = config.out / "loop_closures.csv" if config.out else None
-        rows = []
-        for step in self.store.steps:
-            result = step.apply(self.map)
-            self._remember(result)
-            rows += self._closure_rows(step, result)
+        self.writer: threading.Thread | None = None   # writes the last checkpoint
+        started = time.perf_counter()
+        self.map, restored, extras = self.store.rebuild(each=lambda step, result: self._remember(result))
+        for frame, experience, x, y, heading in extras.get("recent", []):   # before the checkpoint: not replayed
+            self.recent[int(frame)] = FrameResult(int(frame), int(experience), (float(x), float(y), float(heading)))
+        self.recent = collections.OrderedDict(sorted(self.recent.items())[-REPLAY_FRAMES:])
+        step_of = {step.frame: step for step in self.store.steps}
+        rows = [closure_row(step_of[frame], fate, residual)
+                for (frame, _, fate), residual in zip(self.map.decisions, self.map.residuals)]
         if self.csv_path is not None:   # written afresh from the journal: a crash never leaves it behind
             try:
                 self.csv_path.parent.mkdir(parents=True, exist_ok=True)
@@ -125,8 +148,10 @@ class ExpMapService(Service):
                 raise PersistenceError(f"{self.csv_path.parent}: cannot create ({error.strerror or error})") from None
             self._write_closures(rows, "w")
         if self.store.steps:
-            log.info("expmap resumed from %s: %d frames, %d experiences, %d links", config.store,
-                     len(self.store.steps), len(self.map), len(self.map.links))
+            log.info("expmap resumed from %s in %.2f s: %d frames (%s), %d experiences, %d links", config.store,
+                     time.perf_counter() - started, len(self.store.steps),
+                     f"checkpoint after {restored}, {len(self.store.steps) - restored} replayed" if restored else "all replayed",
+                     len(self.map), len(self.map.links))
         self.poses: dict[int, GridPose] = {}
         self.views: dict[int, ViewTemplate] = {}
         self.closures: dict[int, LoopClosure] = {}
@@ -139,6 +164,8 @@ class ExpMapService(Service):
         self.queryable("map/snapshot", self.snapshot)
 
     def teardown(self) -> None:
+        if self.writer is not None:
+            self.writer.join()
         self.store.close()
 
     def on_grid_pose(self, message: GridPose) -> None:
@@ -189,8 +216,28 @@ class ExpMapService(Service):
                 result = step.apply(self.map)
             self._remember(result)
             if self.csv_path is not None and result.closure is not None:
-                self._write_closures(self._closure_rows(step, result), "a")
+                self._write_closures([closure_row(step, result.closure, result.residual)], "a")
             self._publish(pose, result)
+            if self.store.checkpoint_due(self.map):
+                self._checkpoint()
+
+    def _checkpoint(self) -> None:
+        """Rebase the map at a checkpoint recorded in the journal, and write its state beside it
+        in a background thread (the previous write joined first)."""
+        if self.writer is not None:
+            self.writer.join()
+        with self.lock:
+            meta, state = self.store.checkpoint(self.map)
+        recent = np.array([(r.frame, r.experience, *r.pose) for r in self.recent.values()], dtype=float).reshape(-1, 5)
+        self.writer = threading.Thread(target=self._write_checkpoint, args=(meta, state, {"recent": recent}),
+                                       name="expmap-checkpoint", daemon=True)
+        self.writer.start()
+
+    def _write_checkpoint(self, meta: dict, state: dict, extras: dict) -> None:
+        try:
+            self.store.write_checkpoint(meta, state, extras)
+        except OSError as error:   # the journal still holds the map: a restart replays more of it
+            log.warning("%s: cannot write the map checkpoint (%s)", self.store.path, error.strerror or error)
 
     def _publish(self, pose: GridPose, result: FrameResult) -> None:
         if result.new_experiences or result.new_links or result.moved:
@@ -222,16 +269,6 @@ class ExpMapService(Service):
                                                    template_id=state.templates[i], frame=state.created[i])
                                         for i, (x, y, heading) in enumerate(state.poses)],
                            links=[link_message(link) for link in state.links])
-
-    @staticmethod
-    def _closure_rows(step: Step, result: FrameResult) -> list[tuple]:
-        """loop_closures.csv's row of a frame whose closure the map decided on (none otherwise)."""
-        if result.closure is None:
-            return []
-        c = step.closure
-        return [(step.frame, c.matched_frame, c.matched_template, c.votes, c.method or "none", f"{c.forward:.4f}",
-                 f"{c.left:.4f}", f"{c.yaw:.5f}", c.inliers, c.geometry_error,
-                 "" if result.residual is None else f"{result.residual:.3f}", str(result.closure == "accepted").lower())]
 
     def _write_closures(self, rows: list[tuple], mode: str) -> None:
         try:

@@ -25,7 +25,7 @@ from services.evaluation.trajectory import Trajectory, read_tum
 from services.expmap.export import MapExportError, export_map, graph_dict, read_log
 from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, Link, MapParams, between, compose, wrap
 from services.expmap.service import ExpMapConfig, ExpMapService
-from services.expmap.store import MapStore, Step
+from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, replay, write_checkpoint
 
 QUARTER = math.pi / 2
 
@@ -346,6 +346,128 @@ def test_other_parameters_are_a_clear_error(tmp_path):
         read_log(path, MapParams(new_experience_distance=1.0))
 
 
+# --- checkpoints ------------------------------------------------------------------------------
+class Every100(CheckpointPolicy):
+    """Checkpoints where a test wants them: every 100 frames."""
+
+    def due(self, experience_map: ExperienceMap, steps_since: int) -> bool:
+        return steps_since >= 100
+
+
+EVERY_100 = Every100()
+
+
+def live_store(path, steps, policy=EVERY_100) -> ExperienceMap:
+    """The map as the service builds it: each step journaled, applied, then a checkpoint when due."""
+    store, experience_map = MapStore(path, PARAMS, policy), ExperienceMap(PARAMS)
+    for step in steps:
+        store.append(step)
+        step.apply(experience_map)
+        if store.checkpoint_due(experience_map):
+            store.write_checkpoint(*store.checkpoint(experience_map), {"recent": np.array([step.frame])})
+    store.close()
+    return experience_map
+
+
+def same_state(a: ExperienceMap, b: ExperienceMap) -> None:
+    """Bit for bit: the whole state, the solver's linearisation point, and every estimate (which
+    adds the experiences not yet in the solver to it: compare a map once)."""
+    state_a, state_b = a.state(), b.state()
+    assert state_a.keys() == state_b.keys()
+    for key in state_a:
+        assert np.array_equal(state_a[key], state_b[key], equal_nan=True), key
+    assert a.decisions == b.decisions and a.residuals == b.residuals
+    same_map(a, b)
+    assert np.array_equal(a.final_poses(), b.final_poses())
+
+
+def test_a_map_restored_from_its_checkpoint_and_the_frames_after_it_is_the_map_the_run_had(tmp_path):
+    # Two laps: closures accepted at frames 128..135, refused at 200..207, checkpoints after 100 and 200.
+    _, steps = two_laps_with_a_look_alike()
+    path = tmp_path / "map.log"
+    live = live_store(path, steps)
+    assert MapStore(path, PARAMS).checkpoints == [100, 200]
+    replayed = []
+    restored, _, extras = MapStore(path, PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
+    assert replayed == [step.frame for step in steps[200:]] and extras["recent"].tolist() == [steps[199].frame]
+    same_state(restored, live)
+    assert restored.closures == {"accepted": 8, "rejected": 8, "unmeasured": 0, "unmatched": 0}
+    # The whole journal replayed, rebased where it says, is that map too; without the rebases it is not.
+    live = live_store(tmp_path / "again.log", steps)
+    full = ExperienceMap(PARAMS)
+    replay(full, steps, [100, 200])
+    same_state(full, live)
+    unrebased = ExperienceMap(PARAMS)
+    replay(unrebased, steps, [])
+    assert unrebased.decisions == full.decisions
+    assert not np.array_equal(unrebased.final_poses(), full.final_poses())
+
+
+def test_an_earlier_checkpoint_of_the_same_journal_restores_the_same_map(tmp_path):
+    # Killed after the journal's second checkpoint record, before its file replaced the first one.
+    _, steps = two_laps_with_a_look_alike()
+    live_store(tmp_path / "first.log", steps[:150])
+    live = live_store(tmp_path / "map.log", steps)
+    checkpoint_path(tmp_path / "first.log").replace(checkpoint_path(tmp_path / "map.log"))
+    replayed = []
+    restored, _, _ = MapStore(tmp_path / "map.log", PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
+    assert replayed == [step.frame for step in steps[100:]]
+    same_state(restored, live)
+
+
+def damage(path, steps):
+    file = checkpoint_path(path)
+    file.write_bytes(file.read_bytes()[:len(file.read_bytes()) // 2])
+
+
+def other_parameters(path, steps):
+    file = checkpoint_path(path)
+    with np.load(file) as archive:
+        arrays = {name: archive[name] for name in archive.files}
+    meta = json.loads(str(arrays.pop("meta")))
+    meta["params"]["closure_gate"] = 5.0
+    write_checkpoint(file, meta, arrays, {})
+
+
+def another_journals(path, steps):
+    live_store(path.with_name("other.log"), square_steps(laps=4.0))   # 128 frames: its checkpoint follows step 100
+    checkpoint_path(path.with_name("other.log")).replace(checkpoint_path(path))
+
+
+def missing(path, steps):
+    checkpoint_path(path).unlink()
+
+
+@pytest.mark.parametrize("spoil, reason", [(damage, "unusable map checkpoint"), (other_parameters, "other map parameters"),
+                                           (another_journals, "stale"), (missing, "no map checkpoint")],
+                         ids=["damaged", "other parameters", "another journal's", "missing"])
+def test_an_unusable_checkpoint_is_named_in_a_warning_and_the_whole_journal_replayed(tmp_path, caplog, spoil, reason):
+    _, steps = two_laps_with_a_look_alike()
+    path = tmp_path / "map.log"
+    live = live_store(path, steps)
+    spoil(path, steps)
+    replayed = []
+    with caplog.at_level(logging.WARNING):
+        restored, _, extras = MapStore(path, PARAMS).rebuild(each=lambda step, result: replayed.append(step.frame))
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and str(checkpoint_path(path)) in warnings[0] and reason in warnings[0]
+    assert f"replaying the whole journal ({len(steps)} frames)" in warnings[0] and "\n" not in warnings[0]
+    assert replayed == [step.frame for step in steps] and extras == {}
+    same_state(restored, live)
+
+
+def test_checkpoints_come_at_the_same_frames_in_two_runs_so_their_journals_are_the_same(tmp_path):
+    # Decided on the map's own work (solver updates), not on time.
+    _, steps = two_laps_with_a_look_alike()
+    policy = CheckpointPolicy(min_steps=20, updates=12)
+    live_store(tmp_path / "a.log", steps, policy)
+    live_store(tmp_path / "b.log", steps, CheckpointPolicy(min_steps=20, updates=6))
+    assert len(MapStore(tmp_path / "a.log", PARAMS).checkpoints) >= 2   # the policy does checkpoint this run
+    live_store(tmp_path / "c.log", steps, policy)
+    assert (tmp_path / "a.log").read_bytes() == (tmp_path / "c.log").read_bytes()
+    assert (tmp_path / "a.log").read_bytes() != (tmp_path / "b.log").read_bytes()
+
+
 # --- export ---------------------------------------------------------------------------------
 def test_export_writes_the_graph_and_the_corrected_trajectory(tmp_path):
     steps = square_steps()
@@ -412,8 +534,8 @@ def messages(steps: list[Step]) -> list[tuple[str, object]]:
     return out
 
 
-def service(store, published: list | None = None, out=None) -> ExpMapService:
-    expmap = ExpMapService(RuntimeConfig(), ExpMapConfig(store=store, new_experience_distance=0.6, out=out))
+def service(store, published: list | None = None, out=None, **config) -> ExpMapService:
+    expmap = ExpMapService(RuntimeConfig(), ExpMapConfig(store=store, new_experience_distance=0.6, out=out, **config))
     expmap._send = lambda topic, message: published.append((topic, message)) if published is not None else None
     return expmap
 
@@ -494,6 +616,29 @@ def test_loop_closures_csv_says_which_closures_the_map_kept_and_survives_a_resta
     assert (tmp_path / "b" / "loop_closures.csv").read_text() == (tmp_path / "a" / "loop_closures.csv").read_text()
 
 
+def test_a_service_killed_after_a_checkpoint_restores_it_and_writes_what_the_uninterrupted_one_wrote(tmp_path, caplog):
+    frames, steps = two_laps_with_a_look_alike()
+    inputs = messages(steps)
+    uninterrupted = service(tmp_path / "a.log", out=tmp_path / "a", checkpoint_frames=100, checkpoint_updates=1)
+    deliver(uninterrupted, inputs)
+    uninterrupted.teardown()
+    killed = service(tmp_path / "b.log", out=tmp_path / "b", checkpoint_frames=100, checkpoint_updates=1)
+    # Checkpoints come after frame 128 (the first closure's update) and 229. Killed at frame 150:
+    # frames 129..150 (closures among them) are replayed, frames 87..128 answered from the checkpoint.
+    deliver(killed, [m for m in inputs if m[1].header.seq <= 150])
+    killed.writer.join()   # (the kill came after its checkpoint was written)
+    published = []
+    with caplog.at_level(logging.INFO):
+        restarted = service(tmp_path / "b.log", published, out=tmp_path / "b", checkpoint_frames=100, checkpoint_updates=1)
+    assert "WARNING" not in caplog.text and "151 frames (checkpoint after 129, 22 replayed)" in caplog.text
+    deliver(restarted, inputs)   # everything sent again: the 64 frames up to 150 are answered again, the rest applied
+    restarted.teardown()
+    assert [seq for seq, *_ in map_poses(published)] == list(range(150 - 63, steps[-1].frame + 1))
+    for name in ("a.log", "a/loop_closures.csv"):
+        assert (tmp_path / name).read_bytes() == (tmp_path / name.replace("a", "b", 1)).read_bytes(), name
+    same_state(restarted.map, uninterrupted.map)
+
+
 def test_a_snapshot_taken_while_frames_are_applied_is_the_map_of_one_frame(tmp_path):
     steps = square_steps(laps=2.0)
     inputs = messages(steps)
@@ -518,19 +663,25 @@ def test_a_snapshot_taken_while_frames_are_applied_is_the_map_of_one_frame(tmp_p
         sys.setswitchinterval(interval)
     taken = {m.header.seq: m for m in snapshots if expmap.map.last_frame is not None and m.experiences}
     assert len(taken) >= 5, "too few snapshots during the run to judge"
-    # Each snapshot is exactly the map the first frames up to its header's seq make.
-    replay = ExperienceMap(PARAMS)
-    for step in steps:
-        step.apply(replay)
+    # Each snapshot is exactly the map the first frames up to its header's seq make (the journal
+    # replayed, rebased at its checkpoints as the service was).
+    replayed = ExperienceMap(PARAMS)
+    compared = []
+
+    def compare(step, result):
         snapshot = taken.get(step.frame)
         if snapshot is None:
-            continue
-        state = replay.snapshot()
+            return
+        state = replayed.snapshot()
         assert [(e.x, e.y, e.heading) for e in snapshot.experiences] == [tuple(p) for p in state.poses.tolist()]
         assert [(link.source, link.target, link.accepted) for link in snapshot.links] == \
             [(link.source, link.target, link.accepted) for link in state.links]
         assert all(link.source < len(snapshot.experiences) and link.target < len(snapshot.experiences)
                    for link in snapshot.links)
+        compared.append(step.frame)
+
+    replay(replayed, steps, MapStore(tmp_path / "live.log", PARAMS).checkpoints, each=compare)
+    assert len(compared) == len(taken)
 
 
 # --- the offline build on the real NuBot sequence ---------------------------------------------
