@@ -29,6 +29,7 @@ import zenoh
 from services.common import codec, topics
 from services.common.errors import ConfigError
 from services.common.runtime import RuntimeConfig, open_session
+from services.expmap.store import parse_records
 from tests.e2e.test_compose import find_compose, install_compose
 from tests.netutil import REPO, free_port, wait_for
 from tests.tlsutil import CLIENT_MTLS, CLIENT_TLS, client_runtime, make_certs
@@ -253,8 +254,10 @@ def host_runtime(port: int) -> RuntimeConfig:
 
 
 def journal_frames(text: str) -> list[int]:
-    """Frames of an experience-map journal (its first record is the map's header)."""
-    return [json.loads(line.rsplit("\t", 1)[0])["frame"] for line in text.splitlines()[1:]]
+    """Frames of an experience-map journal (its first record is the map's header; checkpoint
+    records hold no frame)."""
+    steps, _ = parse_records([json.loads(line.rsplit("\t", 1)[0]) for line in text.splitlines()[1:]])
+    return [step.frame for step in steps]
 
 
 def pid_in(container: str) -> str:

@@ -31,7 +31,7 @@ def test_integrate_nubot_first_40_frames(shared_data, tmp_path):
     assert len(grid) == len(deadreckoning) == 40
     assert not (out / "groundtruth.tum").exists()  # LIBVISO2 increments carry no truth
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["input"]["frames"] == 40 and metrics["decoder"] == "subpixel"
+    assert metrics["input"]["frames"] == 40 and metrics["decoder"] == "calibrated"   # the default
     assert metrics["grid"]["path_length_m"] > 0
     # The grid cells follow the dead reckoning of the same increments closely.
     assert metrics["grid"]["mean_difference_from_dr_m"] < 0.1 * metrics["deadreckoning"]["path_length_m"]

@@ -48,7 +48,7 @@ def router_pid(port: int) -> int | None:
 
 
 def map_frames(out: Path) -> list[int]:
-    return [step["frame"] for step in faults.journal(out / "experience_map.log")[1:]]
+    return [record["frame"] for record in faults.journal(out / "experience_map.log")[1:] if "frame" in record]
 
 
 def live_services(session, robot: str = "robot0") -> set[str]:
