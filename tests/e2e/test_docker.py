@@ -332,7 +332,9 @@ def test_kill_9_in_each_container_is_restarted_and_the_map_loses_no_frame(stack)
         restarts = lambda: int(docker("inspect", "-f", "{{.RestartCount}}", container).stdout)   # noqa: E731
         before = restarts()
         stack.poses.wait(more=5)
-        docker("exec", container, "sh", "-c", f"kill -9 {pid_in(container)}")
+        # 137: the container went down with its process before the exec's shell could return.
+        done = docker("exec", container, "sh", "-c", f"kill -9 {pid_in(container)}", check=False)
+        assert done.returncode in (0, 137), done.stderr
         killed = time.monotonic()
         wait_for(lambda: restarts() > before, timeout=30, period=0.2)
         stack.poses.wait(more=20, timeout=120)
