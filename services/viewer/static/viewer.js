@@ -94,6 +94,7 @@ function showCounters(c, connected) {
 // so what was shown stays on the page when the viewer is gone (the run ended) and a fetch that
 // fails keeps the previous image instead of a broken one.
 async function loadImage(img, url) {
+  if (url === img.dataset.url) return;   // this revision is shown already
   if (img.dataset.loading === "1") {
     img.dataset.pending = url;
     return;
@@ -103,12 +104,19 @@ async function loadImage(img, url) {
     const response = await fetch(url, { cache: "no-store" });
     if (response.status === 200) {
       const shown = URL.createObjectURL(await response.blob());
-      await new Promise((resolve) => {
-        img.onload = img.onerror = resolve;
+      // Decoded off-screen first, so the <img> swaps from one whole image to the next and is
+      // never blank (naturalWidth 0) while a new one loads.
+      const next = new Image();
+      next.src = shown;
+      try {
+        await next.decode();
         img.src = shown;
-      });
-      if (img.dataset.blob) URL.revokeObjectURL(img.dataset.blob);
-      img.dataset.blob = shown;
+        if (img.dataset.blob) URL.revokeObjectURL(img.dataset.blob);
+        img.dataset.blob = shown;
+        img.dataset.url = url;
+      } catch (error) {
+        URL.revokeObjectURL(shown);   // not an image: keep the last one
+      }
     }
   } catch (error) {
     // The viewer is unreachable: keep the last image.
