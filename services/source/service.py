@@ -93,6 +93,11 @@ class _SourceSettings(BaseModel):
         5.0, gt=0, description="Seconds without an acknowledgement after which the frames in flight are sent again "
                                "(a service restarted downstream lost them; services that already handled a frame "
                                "replay their outputs instead of computing them again).")
+    resend_acknowledged: int = Field(
+        17, ge=0, description="Acknowledged frames sent again, oldest first, before the frames in flight when those are "
+                              "re-sent: a restarted egomotion rebuilds the block in hand from them, so its increments "
+                              "equal an uninterrupted run's (a block of `shard_block` frames and its 2 primers: 17 covers "
+                              "mono's 16, stereo's 4 needs 5; docs/pipeline.md).")
     exit_at_end: bool = Field(True, description="Exit once the last frame is acknowledged (or sent, without flow control).")
     loop: bool = Field(
         False, description="After the last frame start again at the first, for ever; seq and stamps go on from the last "
@@ -158,7 +163,7 @@ class SourceService(Service):
         self.in_flight: collections.OrderedDict[int, CameraFrame] = collections.OrderedDict()
         self.last_progress = time.monotonic()
         self.resent = 0
-        self.primer: CameraFrame | None = None   # the last acknowledged frame
+        self.acknowledged: collections.deque[CameraFrame] = collections.deque(maxlen=config.resend_acknowledged)
         self.sent = 0
         self.finished = False
         self.next_due = 0.0
@@ -196,7 +201,7 @@ class SourceService(Service):
         seq = message.header.seq
         now = time.monotonic()
         while self.in_flight and next(iter(self.in_flight)) <= seq:
-            self.primer = self.in_flight.popitem(last=False)[1]
+            self.acknowledged.append(self.in_flight.popitem(last=False)[1])
             self.last_progress = now
         if self.flow is not None:
             before = self.flow.limit
@@ -341,10 +346,10 @@ class SourceService(Service):
             return
         log.warning("source: %s; sending the %d frames in flight again (from %d)", reason, len(self.in_flight),
                     next(iter(self.in_flight)))
-        # The last acknowledged frame goes first: every stage has handled it (they drop it or
-        # replay their output), and an estimator restarted downstream takes it as its previous
-        # frame, so the first frame in flight gets its true motion, not a first-frame zero.
-        for message in ([self.primer] if self.primer is not None else []) + list(self.in_flight.values()):
+        # The last acknowledged frames go first: every stage has handled them (they replay their
+        # outputs), and an estimator restarted downstream runs its block again from them, so the
+        # frames in flight get the increments an uninterrupted run gives them, not a first-frame zero.
+        for message in [*self.acknowledged, *self.in_flight.values()]:
             self.publish("camera/frame", message)
         if self.flow is not None:
             self.flow.resent()
@@ -414,6 +419,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--live-window", type=int, help="frames in flight from a live camera (default 2; 0: no flow control)")
     parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
     parser.add_argument("--resend-after", type=float, help="seconds without acknowledgement before resending (default 5)")
+    parser.add_argument("--resend-acknowledged", type=int, metavar="N",
+                        help="acknowledged frames sent again before the frames in flight (default 17)")
     parser.add_argument("--loop", action="store_true", default=None, help="start again at the first frame after the last, for ever")
     parser.add_argument("--wait-for", type=lambda text: [name.strip() for name in text.split(",") if name.strip()],
                         help="services whose health tokens must be up before the first frame, comma separated")
@@ -427,7 +434,7 @@ def config_from_args(args: argparse.Namespace) -> SourceConfig:
     """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
     (world settings from --laps and --world KEY=VALUE, a ROS bag's topics from --image-topic ...)."""
     fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "adaptive_window",
-              "live_window", "ack_topic", "resend_after", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
+              "live_window", "ack_topic", "resend_after", "resend_acknowledged", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
     return load_config(SourceConfig, "source", config_file=args.config,
                        overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
 

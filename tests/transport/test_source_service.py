@@ -125,6 +125,46 @@ def test_resuming_source_starts_at_the_last_frame_the_services_all_handled(handl
         assert np.array_equal(image_from_msg(message.left), reference[message.header.seq % FRAMES].left)
 
 
+def test_frames_sent_again_follow_the_last_acknowledged_ones():
+    """A pipeline that acknowledges frames 0–9 and then goes quiet (a stage restarted): after
+    `resend_after` the source sends the last `resend_acknowledged` acknowledged frames, oldest
+    first, then the frames in flight; acknowledged, it goes on and ends."""
+    port = free_port()
+    router = router_session(port)
+    frames = open_source("synthetic:0", preset="synthetic", stop=20)
+    config = SourceConfig(source="synthetic:0", window=4, adaptive_window=False, resend_after=1.0, resend_acknowledged=5)
+    service = SourceService(RuntimeConfig(connect=[endpoint(port)]), config, frames, instance="test")
+    client = client_session(port)
+    acknowledge = client.declare_publisher(topics.key("robot0", "map/pose"), encoding=zenoh.Encoding(codec.encoding_of(MapPose)))
+    quiet = threading.Event()
+    seqs: list[int] = []
+
+    def on_frame(sample: zenoh.Sample):
+        seq = codec.decode(sample.payload.to_bytes(), CameraFrame, str(sample.encoding)).header.seq
+        seqs.append(seq)
+        if seq < 10 or not quiet.is_set() or len(seqs) > 14:
+            acknowledge.put(codec.encode(MapPose(header=header(seq, "map"), pose=planar_pose(0.0, 0.0, 0.0),
+                                                 heading=0.0, experience_id=0)))
+        if seq == 9:
+            quiet.set()
+
+    subscriber = client.declare_subscriber(topics.key("robot0", "camera/frame"), on_frame)
+    thread = threading.Thread(target=service.run)
+    thread.start()
+    try:
+        wait_for(lambda: not thread.is_alive(), timeout=60, period=0.1)   # every frame acknowledged in the end
+    finally:
+        service.stop()
+        thread.join(timeout=10)
+        subscriber.undeclare()
+        acknowledge.undeclare()
+        client.close()
+        router.close()
+    # 0–13 sent (10–13 in flight when the acknowledgements stopped), then 5–9 and 10–13 again, then the rest.
+    assert seqs == [*range(14), *range(5, 14), *range(14, 20)]
+    assert service.resent == 4
+
+
 STAGES_S = (0.010, 0.030, 0.010)   # the stub pipeline: 33 frames/s, 50 ms through it when empty
 REPLAY_FRAMES = 150
 
