@@ -28,6 +28,7 @@ import zenoh
 
 from services.cli.service import SERVICES
 from services.common import codec, topics
+from services.common.journal import read_records
 from services.common.runtime import RuntimeConfig, open_session
 from services.common.service import REPLAY_FRAMES
 from services.expmap.store import parse_records
@@ -503,8 +504,9 @@ def test_a_source_killed_mid_run_comes_back_where_the_pipeline_is(tmp_path, secu
     for name, (code, _, err) in results.items():
         assert code == 0, f"{name}: {err[-2000:]}"
     assert min(poses[restarted_at:]) >= before, "the restarted source sent frames the pipeline had handled"
-    steps, _ = parse_records([json.loads(line.rsplit("\t", 1)[0]) for line in
-                              (tmp_path / "results" / robot / "experience_map.log").read_text().splitlines()[1:]])
+    records, _, torn = read_records(tmp_path / "results" / robot / "experience_map.log")
+    assert not torn
+    steps, _ = parse_records(records[1:])   # (the first record is the map's header)
     frames = [step.frame for step in steps]
     assert frames == list(range(len(frames))) and frames[-1] >= before + LAP, "a frame is missing from the map, or there twice"
     assert all(b.stamp > a.stamp for a, b in zip(steps, steps[1:]))
