@@ -19,9 +19,10 @@ NUBOT = Path("../shared/data/nubot_scene1")
 
 
 def run_once(config: RunConfig, folder: Path) -> dict[str, float]:
-    """Throughput, latency p50/p99 to map/pose, and `cpu <service>`: ms of handler CPU per frame."""
+    """Throughput, latency p50/p99 to map/pose (grid/pose without mapping), and `cpu <service>`:
+    ms of handler CPU per frame."""
     result = run_pipeline(config.model_copy(update={"listen": f"tcp/127.0.0.1:{free_port()}"}), folder)
-    stage = result.metrics["stages"]["map_online"]
+    stage = result.metrics["stages"]["map_online" if config.mapping else "gridcells"]
     frames = max(stage["frames"], 1)
     return {"fps": stage["throughput_fps"], "p50": stage["latency_ms"]["p50"], "p99": stage["latency_ms"]["p99"],
             **{f"cpu {name}": 1000 * status["extra"]["busy_cpu_s"] / frames
@@ -34,12 +35,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="nubot", help="preset of every service (default nubot)")
     parser.add_argument("--egomotion", default="stereo", help="estimator (default stereo)")
     parser.add_argument("--instances", default="1,2", help="egomotion instance counts to compare (default 1,2)")
+    parser.add_argument("--integrator", choices=["grid", "deadreckoning"], default="grid", help="path integrator (default grid)")
+    parser.add_argument("--no-mapping", action="store_true", help="skip loop closure and the experience map")
     parser.add_argument("--frames", type=int, help="frames per run (default: the whole source)")
     parser.add_argument("--repeats", type=int, default=5, help="runs per instance count (default 5)")
     args = parser.parse_args(argv)
     counts = [int(count) for count in args.instances.split(",")]
     source = args.source if not args.source.startswith("stereo:") else f"stereo:{os.path.abspath(args.source[7:])}"
-    config = RunConfig(source=source, preset=args.preset, egomotion=args.egomotion, n_frames=args.frames)
+    config = RunConfig(source=source, preset=args.preset, egomotion=args.egomotion, n_frames=args.frames,
+                       integrator=args.integrator, mapping=not args.no_mapping)
     runs: dict[int, list[dict[str, float]]] = {count: [] for count in counts}
     with tempfile.TemporaryDirectory() as tmp:
         for repeat in range(args.repeats):   # the counts take turns: a machine whose load changes meets them alike
@@ -60,6 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         one = statistics.median(run["fps"] for run in runs[1])
         rows += [(f"throughput, {count} instances / 1", statistics.median(run["fps"] for run in runs[count]) / one, "")
                  for count in counts if count != 1]
-    print(f"{config.source}, {args.egomotion}, preset {args.preset}: medians of {args.repeats} runs per count, taking turns")
+    stages = f"{args.integrator} integrator{', no mapping' if args.no_mapping else ''}"
+    print(f"{config.source}, {args.egomotion}, preset {args.preset}, {stages}: medians of {args.repeats} runs per count, taking turns")
     print(format_table(rows))
     return 0
