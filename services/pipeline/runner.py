@@ -203,6 +203,17 @@ class Supervisor:
             reader.join(timeout=1.0)
         return " | ".join(list(child.tail)[-lines:])
 
+    def newest_warning(self, names: list[str]) -> str | None:
+        """The message of the newest WARNING or ERROR line in the named children's last lines, led
+        by the child's name (the lines start with their time, so the newest sorts last), or None."""
+        found = [(line, name) for name in names if name in self.children
+                 for line in list(self.children[name].tail) if " WARNING " in line or " ERROR " in line]
+        if not found:
+            return None
+        line, name = max(found)
+        message = line.split(" ", 4)[-1]   # after the date, time, level and logger
+        return message if message.startswith(f"{name}:") else f"{name}: {message}"
+
     def stop(self, names: list[str]) -> None:
         """SIGTERM the named children together, SIGKILL what is left after STOP_TIMEOUT_S."""
         running = [self.children[n] for n in names if n in self.children and self.children[n].process.poll() is None]
@@ -494,6 +505,8 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
             silent = gone
         if now - last_change > config.stall_timeout:
             note = f"; not on the network although running (stopped or hung?): {', '.join(sorted(silent))}" if silent else ""
+            warning = supervisor.newest_warning(["source", *stages])
+            note += f"; last warning: {warning}" if warning else ""
             raise RunError(f"no frame completed for {config.stall_timeout:.0f} s (last acknowledged: {acked}){note}; "
                            f"see the logs in {supervisor.log_dir}")
         time.sleep(0.2)

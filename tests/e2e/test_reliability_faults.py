@@ -151,3 +151,19 @@ def test_service_stopped_for_good_fails_the_run_with_a_clear_message(tmp_path):
     assert any("egomotion left the network" in line for line in lines), err[-3000:]
     assert ended < stall + 15   # the stall timeout, then every process stops (the stopped one too)
     assert faults.service_pid(port, "egomotion") is None
+
+
+def test_a_run_whose_every_frame_is_rejected_quotes_the_reason_when_it_stalls(tmp_path, shared_data):
+    """The stereo estimator on the KITTI clip's left images only: egomotion rejects each frame (and
+    keeps running); the run stalls, and its error quotes egomotion's last warning."""
+    out, port = tmp_path / "run", free_port()
+    config = tmp_path / "stall.toml"
+    config.write_text("[run]\nstall_timeout = 6\n")
+    run = subprocess.run(GRIDSLAM + ["run", "--source", f"kitti:{shared_data / 'kitti06_clip'}", "--preset", "kitti",
+                                     "--egomotion", "stereo", "--n-frames", "10", "--no-mapping", "--listen", endpoint(port),
+                                     "--out", str(out), "--config", str(config)],
+                         cwd=REPO, capture_output=True, text=True, timeout=180)
+    last = run.stderr.strip().splitlines()[-1]
+    assert run.returncode == 1, run.stderr[-3000:]
+    assert last.startswith("gridslam run: error: no frame completed for 6 s"), last
+    assert "last warning: egomotion: rejected seq 0" in last and "has no right image (the source is monocular)" in last, last
