@@ -19,14 +19,16 @@ NUBOT = Path("../shared/data/nubot_scene1")
 
 
 def run_once(config: RunConfig, folder: Path) -> dict[str, float]:
-    """Throughput, latency p50/p99 to map/pose (grid/pose without mapping), and `cpu <service>`:
-    ms of handler CPU per frame."""
+    """Throughput, latency p50/p99 to map/pose (grid/pose without mapping), `cpu <service>`: ms of
+    handler CPU per frame, and `process <service>`: ms of the whole process's CPU per frame while
+    serving (every thread: the frames' decoding, Zenoh's and OpenCV's threads)."""
     result = run_pipeline(config.model_copy(update={"listen": f"tcp/127.0.0.1:{free_port()}"}), folder)
     stage = result.metrics["stages"]["map_online" if config.mapping else "gridcells"]
     frames = max(stage["frames"], 1)
     return {"fps": stage["throughput_fps"], "p50": stage["latency_ms"]["p50"], "p99": stage["latency_ms"]["p99"],
-            **{f"cpu {name}": 1000 * status["extra"]["busy_cpu_s"] / frames
-               for name, status in result.metrics["services"].items() if "busy_cpu_s" in status.get("extra", {})}}
+            **{f"{label} {name}": 1000 * status["extra"][key] / frames
+               for name, status in result.metrics["services"].items()
+               for label, key in (("cpu", "busy_cpu_s"), ("process", "serving_cpu_s")) if key in status.get("extra", {})}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -60,6 +62,12 @@ def main(argv: list[str] | None = None) -> int:
                  (f"{label}: latency frame→pose p99", median["p99"], "ms")]
         rows += [(f"{label}: CPU per frame, {name.removeprefix('cpu ')}", value, "ms")
                  for name, value in median.items() if name.startswith("cpu ")]
+        rows += [(f"{label}: process CPU per frame, {name.removeprefix('process ')}", value, "ms")
+                 for name, value in median.items() if name.startswith("process ")]
+        services = sum(value for name, value in median.items() if name.startswith("process "))
+        rows += [(f"{label}: process CPU per frame, all services (not the router, the recorder)", services, "ms"),
+                 (f"{label}: throughput the cores allow ({os.cpu_count()} × 1000 / all services)",
+                  os.cpu_count() * 1000 / services, "frames/s")]
     if 1 in runs and len(counts) > 1:
         one = statistics.median(run["fps"] for run in runs[1])
         rows += [(f"throughput, {count} instances / 1", statistics.median(run["fps"] for run in runs[count]) / one, "")

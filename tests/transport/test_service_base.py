@@ -120,7 +120,8 @@ def test_rejections_gaps_stale_and_replay():
         assert thread.is_alive()
         extra = service.status().extra
         assert {name: extra[name] for name in ("replayed", "rejected")} == {"replayed": 1, "rejected": 1}
-        assert set(extra) == {"replayed", "rejected", "cpu_s", "busy_cpu_s"} and 0 <= extra["busy_cpu_s"] <= extra["cpu_s"]
+        assert set(extra) == {"replayed", "rejected", "cpu_s", "serving_cpu_s", "busy_cpu_s"}
+        assert 0 <= extra["busy_cpu_s"] <= extra["serving_cpu_s"] <= extra["cpu_s"]
     finally:
         service.stop()
         thread.join(timeout=5)
