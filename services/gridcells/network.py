@@ -335,8 +335,9 @@ class NetworkStack:
       form (see _rank_one_factors), when that form matches the exact kernel to 1e-6 of its peak
       (λ = 18 at n = 128: 5e-8); otherwise (λ = 18 on a 64² sheet, which truncates the kernel)
       on all bins with the full 4×4 product;
-    - FFTW (pyFFTW) plans on fixed buffers when it is installed, pruned to the band's columns,
-      scipy.fft otherwise (fft_backend()).
+    - FFTW (pyFFTW) plans on fixed buffers when it is installed, scipy.fft otherwise
+      (fft_backend()); both pruned to the band's columns with the rank-one product (the forward
+      transform's second pass and the inverse's first run on those columns only).
     """
 
     def __init__(self, params: NetworkParams | tuple[NetworkParams, ...] = NetworkParams(), *, settle: bool = True,
@@ -415,6 +416,7 @@ class NetworkStack:
             self._rates = np.zeros(spectral, dtype=np.complex64)
             self._spectrum = np.zeros(spectral, dtype=np.complex64)
             self._h = np.zeros(shape, dtype=np.float32)
+            self._columns = np.zeros(spectral, dtype=np.complex64)   # the band's columns; the others stay zero
         self._r[...] = 0
         self._spectrum[...] = 0
         if self.rank_one:
@@ -474,12 +476,18 @@ class NetworkStack:
         for _ in range(self.params.steps_per_frame if steps is None else steps):
             if fftw:
                 self._forward()
+            elif self.rank_one:   # pruned to the band's columns, as with FFTW
+                w = self._width
+                rates[..., :w] = scipy.fft.fft(scipy.fft.rfft(r, axis=-1)[..., :w], axis=-2, overwrite_x=True)
             else:
                 rates[...] = scipy.fft.rfft2(r)
             self._product()
             spectrum[:, :, 0, 0] += dc
             if fftw:
                 self._inverse()
+            elif self.rank_one:
+                self._columns[..., :w] = scipy.fft.ifft(spectrum[..., :w], axis=-2, norm="forward")
+                h[...] = scipy.fft.irfft(self._columns, n=m, axis=-1, norm="forward")
             else:
                 h[...] = scipy.fft.irfft2(spectrum, s=(m, m), norm="forward")
             np.maximum(h, zeros, out=f)
