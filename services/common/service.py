@@ -139,7 +139,7 @@ class Service:
         self._recovering_until: float | None = None   # frames after a gap wait until then
         self._gap_events = 0
         self._busy_s = 0.0   # CPU time of this thread in handlers and on_idle: the service's own work
-        self._running_cpu_s: float | None = None   # the process's CPU time when it began serving
+        self._cpu_when_serving: float | None = None   # the process's CPU time when it began serving
 
     # ----------------------------------------------------------------- for subclasses
     def setup(self) -> None:
@@ -258,7 +258,7 @@ class Service:
             self._entities.append(self.session.info.declare_transport_events_listener(self._on_transport_event,
                                                                                       history=True))
             self.state = "running"
-            self._running_cpu_s = time.process_time()
+            self._cpu_when_serving = time.process_time()
             log.info("%s/%s running on robot %s", self.name, self.instance, self.robot)
             while not self._stop.is_set():
                 self._serve_once()
@@ -309,7 +309,7 @@ class Service:
         counters = {"replayed": c.replayed, "rejected": c.rejected, "handler_errors": c.handler_errors,
                     "dropped_newest_only": c.dropped_newest_only, "dropped_busy": c.dropped_busy}
         cpu = time.process_time()
-        serving = {} if self._running_cpu_s is None else {"serving_cpu_s": round(cpu - self._running_cpu_s, 3)}
+        serving = {} if self._cpu_when_serving is None else {"serving_cpu_s": round(cpu - self._cpu_when_serving, 3)}
         return {**{name: value for name, value in counters.items() if value},
                 "cpu_s": round(cpu, 3), **serving, "busy_cpu_s": round(self._busy_s, 3)}
 

@@ -144,7 +144,7 @@ class Supervisor:
         # One BLAS and one OpenCV thread per service (unless set): the services are single-threaded
         # pipeline stages sharing the cores. Spinning BLAS threads on busy cores slow a 128×128 SVD
         # a hundredfold; OpenCV's threads cost the stereo estimator 2–4 ms more CPU a frame on
-        # NuBot (docs/pipeline.md), CPU the other stages need.
+        # NuBot (docs/benchmarks.md), CPU the other stages need.
         env = {**os.environ, **{name: os.environ.get(name, "1") for name in ("OPENBLAS_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")}}
         child.process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
