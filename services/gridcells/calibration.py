@@ -272,38 +272,51 @@ def check_velocities(frames: int, speed: float, seed: int = 0) -> np.ndarray:
     return velocities
 
 
-def _check_sequence(table: FlowTable, frames: int) -> tuple[float, float]:
-    """Drive the warm network with check_velocities and compare the decoded flow with the
-    table's prediction F: the lag c of flow_k ≈ F_k + c·(F_{k−1} − F_k), from the component of
-    the change across F_k (a turn; least squares), and the rms error of the velocity decoded
-    with that lag taken out (network units).
-
-    Across, because the direction of travel follows a turn with the same lag at every speed
-    (2 % at α|v| = 0.02 to 0.2, n = 128); the component along F_k (a change of speed) reads
-    2 % at low speeds to 4 % at 0.2, but taken out with its own coefficient along each frame's
-    direction it does not sum to the displacement: docs/gridcells.md, "The step length from the
-    lattice"."""
-    if frames < 3:
-        return 0.0, 0.0
-    params = table.params
-    network = NetworkStack(params, settle=False)
+def check_flows(table: FlowTable, velocities: np.ndarray) -> np.ndarray:
+    """The decoded flow (complex, neurons per frame) of the table's warm network driven with
+    ``velocities`` (complex, network units per frame), one frame each."""
+    network = NetworkStack(table.params, settle=False)
     network.state = table.warm_state[None]
     network.set_field(table.warm_field[None])
-    # A typical speed: half the linear range.
-    velocities = check_velocities(frames, 0.15 / params.alpha)
     previous = network.fields[0]
-    measured = np.zeros(frames, dtype=complex)
+    measured = np.zeros(len(velocities), dtype=complex)
     for k, velocity in enumerate(velocities):
         field_ = network.run((velocity.real, velocity.imag))[0]
         dx, dy = decode_subpixel(previous, field_, table.search)
         measured[k] = complex(dx, -dy)
         previous = field_
+    return measured
+
+
+def lag_components(table: FlowTable, velocities: np.ndarray, measured: np.ndarray) -> tuple[float, float]:
+    """The one-frame lags (along, across) of measured flows: flow_k ≈ F_k + c·(F_{k−1} − F_k),
+    F the table's flow of each velocity, the change and the residual split along and across
+    F_k, each coefficient by least squares: a change of speed, a turn."""
     predicted = np.array([table.flow(v) for v in velocities])
     moving = np.abs(predicted[1:]) > 0
     direction = np.where(moving, predicted[1:] / np.where(moving, np.abs(predicted[1:]), 1), 0)
-    turn = ((predicted[:-1] - predicted[1:]) * np.conj(direction)).imag
-    residual = ((measured[1:] - predicted[1:]) * np.conj(direction)).imag
-    lag = float(np.dot(residual, turn) / max(np.dot(turn, turn), 1e-30))
+    change = (predicted[:-1] - predicted[1:]) * np.conj(direction)
+    residual = (measured[1:] - predicted[1:]) * np.conj(direction)
+    along, across = (float(np.dot(part(residual), part(change)) / max(np.dot(part(change), part(change)), 1e-30))
+                     for part in (np.real, np.imag))
+    return along, across
+
+
+def _check_sequence(table: FlowTable, frames: int) -> tuple[float, float]:
+    """Drive the warm network with check_velocities at half the linear range (α|v| about
+    0.15) and compare the decoded flow with the table's: the lag c, the lag across the
+    direction of travel (a turn), and the rms error of the velocity decoded with it
+    (network units).
+
+    Across, because the direction follows a turn with about the same lag at every speed (2 %
+    from α|v| = 0.02 to 0.2 at n = 128); a change of speed shows more (2 % to 4 %), but taken
+    out with its own coefficient along each frame's direction it does not sum to the
+    displacement (docs/gridcells.md, "The step length from the lattice")."""
+    if frames < 3:
+        return 0.0, 0.0
+    velocities = check_velocities(frames, 0.15 / table.params.alpha)
+    measured = check_flows(table, velocities)
+    lag = lag_components(table, velocities, measured)[1]
     decoded = LagInverter(table, lag)
     errors = np.array([decoded(w) - v for w, v in zip(measured, velocities)])
     return lag, float(np.sqrt(np.mean(np.abs(errors[1:]) ** 2)))
@@ -313,7 +326,7 @@ class LagInverter:
     """Per-frame decoding with the table: flow → input velocity, with the one-frame lag taken
     out. The model flow_k = F_k + c·(F_{k−1} − F_k) (F_{k−1} the previous frame's own flow) is
     solved exactly, F_k = (flow_k − c·F_{k−1}) / (1 − c), and conserves the displacement: the
-    own flows sum to the decoded ones plus c·(F_last − F_first), whatever the path, so the
+    own flows sum to the decoded ones plus c times the last own flow, whatever the path, so the
     per-frame noise of the flow does not accumulate through the lag."""
 
     def __init__(self, table: FlowTable, lag: float | None = None):
