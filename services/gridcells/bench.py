@@ -265,8 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=40, help="frames timed per configuration")
     parser.add_argument("--slow-repeats", type=int, default=8, help="frames timed for the paper decoders")
     parser.add_argument("--sweep", action="store_true",
-                        help="instead of timings: the constant-velocity direction sweep (24 directions, raw and calibrated) "
-                             "and the ring attractor's yaw-rate sweep")
+                        help="instead of timings: the constant-velocity direction sweep (24 directions, raw and calibrated), "
+                             "the flow's one-frame lag by speed and the ring attractor's yaw-rate sweep")
     args = parser.parse_args(argv)
     if args.sweep:
         print_sweeps()

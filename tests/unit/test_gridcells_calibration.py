@@ -13,8 +13,10 @@ from services.gridcells.calibration import (
     FlowTable,
     LagInverter,
     cache_key,
+    check_velocities,
     flow_table,
     flow_table_path,
+    lag_components,
     measure_flow,
 )
 from services.gridcells.decoders import decode_subpixel
@@ -76,6 +78,18 @@ def test_lag_inverter_recovers_the_lagged_flow_and_conserves_displacement():
         inverter(w)
         corrected.append(inverter.previous_flow)
     assert sum(corrected) - noisy.sum() == pytest.approx(table.lag * corrected[-1], abs=1e-9)
+
+
+def test_lag_components_split_a_change_of_speed_from_a_turn():
+    """Flows that carry 3 % of each change of speed and 2 % of each turn a frame late give
+    back those two fractions."""
+    table = synthetic_table()
+    velocities = check_velocities(300, 0.075)
+    own = np.array([table.flow(v) for v in velocities])
+    direction = own[1:] / np.maximum(np.abs(own[1:]), 1e-30)  # (the sequence stops once: no direction there)
+    change = (own[:-1] - own[1:]) * np.conj(direction)
+    lagged = np.r_[own[0], own[1:] + direction * (0.03 * change.real + 0.02j * change.imag)]
+    assert lag_components(table, velocities, lagged) == pytest.approx((0.03, 0.02), abs=1e-9)
 
 
 def test_save_load_round_trip_and_the_cache(tmp_path, small_table):
