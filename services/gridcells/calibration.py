@@ -304,8 +304,8 @@ def lag_components(table: FlowTable, velocities: np.ndarray, measured: np.ndarra
 
 def _check_sequence(table: FlowTable, frames: int) -> tuple[float, float]:
     """Drive the warm network with check_velocities at half the linear range (α|v| about
-    0.15) and compare the decoded flow with the table's: the lag c, the lag across the
-    direction of travel (a turn), and the rms error of the velocity decoded with it
+    0.15) and compare the decoded flow with the table's: the lag c (lag_components' lag
+    across the direction of travel, a turn) and the rms error of the velocity decoded with it
     (network units).
 
     Across, because the direction follows a turn with about the same lag at every speed (2 %
