@@ -37,8 +37,7 @@ def run(args) -> int:
         table = measure_flow(params)
         table.save(path)
         rows += [(f"module {k} (α={params.alpha:.4g})", f"{table.seconds:.1f}", f"s, {path}"),
-                 (f"module {k} search / lag along, across / noise",
-                  f"±{table.search} / {table.lag[0]:.4f}, {table.lag[1]:.4f} / {table.noise:.3g}",
-                  "neurons / fractions / network units per frame")]
+                 (f"module {k} search / lag / noise", f"±{table.search} / {table.lag:.4f} / {table.noise:.3g}",
+                  "neurons / fraction / network units per frame")]
     print(format_table(rows))
     return 0

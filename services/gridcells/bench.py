@@ -26,7 +26,7 @@ import time
 import numpy as np
 import scipy.fft
 
-from services.gridcells.calibration import CalibrationGrid, LagInverter, flow_table
+from services.gridcells.calibration import CalibrationGrid, LagInverter, check_flows, check_velocities, flow_table, lag_components
 from services.gridcells.decoders import DECODERS, decode_paper_bruteforce, decode_subpixel
 from services.gridcells.heading import HeadDirectionRing, RingHeading, ring_calibration
 from services.gridcells.integrator import LATTICE_RATE, GridCellIntegrator, auto_velocity_scale, module_params
@@ -195,6 +195,19 @@ def direction_sweep(directions: int = 24, shift: float = 3.0, settle: int = 12, 
     return list(zip(np.degrees(angles), errors(raw), errors(calibrated), np.abs(calibrated / frames / velocities)))
 
 
+def lag_sweep(drives=(0.02, 0.05, 0.1, 0.15, 0.2), frames: int = 300) -> list[tuple[float, float, float, float]]:
+    """The one-frame lag of the default network's flow (calibration.lag_components) on the
+    calibration's check sequence around each drive α|v|: (drive, mean flow in neurons per
+    frame, lag along, lag across)."""
+    table = flow_table(NetworkParams())
+    rows = []
+    for drive in drives:
+        velocities = check_velocities(frames, drive / table.params.alpha)
+        measured = check_flows(table, velocities)
+        rows.append((drive, float(np.abs(measured).mean()), *lag_components(table, velocities, measured)))
+    return rows
+
+
 def ring_sweep(rates_deg=(1, 2, 5, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100, 120, 150, 180), frames: int = 50
                ) -> list[tuple[float, float, float]]:
     """The largest heading error (degrees) over ``frames`` frames of a constant yaw rate
@@ -223,6 +236,12 @@ def print_sweeps() -> None:
         print(f"| {angle:.0f}° | {raw:+.3f} | {calibrated:+.4f} | {ratio:.5f} |")
     print(f"| largest \\|error\\| | {max(abs(r[1]) for r in rows):.3f} | {max(abs(r[2]) for r in rows):.4f} | "
           f"{max(abs(r[3] - 1) for r in rows):.5f} |\n")
+    print("One-frame lag of the flow on the calibration's check sequence (300 frames) around each drive: the fraction of a "
+          "change of speed (along) and of a turn (across) that shows a frame late\n")
+    print("| α\\|v\\| | mean flow, neurons per frame | along | across |\n|---:|---:|---:|---:|")
+    for drive, flow, along, across in lag_sweep():
+        print(f"| {drive:g} | {flow:.2f} | {along:.4f} | {across:.4f} |")
+    print()
     ring = ring_sweep()
     print("Head-direction ring: largest heading error over 50 frames of a constant yaw rate from rest\n")
     print("| yaw per frame | the ring, one ring frame per frame | `--heading ring` (≤ 30° per ring frame) |\n|---:|---:|---:|")
@@ -246,8 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=40, help="frames timed per configuration")
     parser.add_argument("--slow-repeats", type=int, default=8, help="frames timed for the paper decoders")
     parser.add_argument("--sweep", action="store_true",
-                        help="instead of timings: the constant-velocity direction sweep (24 directions, raw and calibrated) "
-                             "and the ring attractor's yaw-rate sweep")
+                        help="instead of timings: the constant-velocity direction sweep (24 directions, raw and calibrated), "
+                             "the flow's one-frame lag by speed and the ring attractor's yaw-rate sweep")
     args = parser.parse_args(argv)
     if args.sweep:
         print_sweeps()

@@ -13,8 +13,7 @@ the lattice flows toward larger columns for +x and smaller rows for +y). A flow 
 by inverting it: the input u with c(u)·u = w, by fixed-point iteration on the table
 (linear in direction, cubic in speed). The table also holds the network's warm state (the
 settled lattice after WARM_FRAMES zero-velocity frames on the torus, when it has finished
-re-forming and no longer drifts), the one-frame lag of the flow behind a change of input (along
-and across the direction of travel), and
+re-forming and no longer drifts), the one-frame lag of the flow behind a change of input, and
 the rms error of the decoded velocity on a varying input (the module's precision).
 
 Tables are cached on disk (cache_dir(): $GRIDSLAM_CACHE, else $XDG_CACHE_HOME/gridslam, else
@@ -42,7 +41,7 @@ from services.gridcells.network import GridCellError, NetworkParams, NetworkStac
 log = logging.getLogger(__name__)
 
 # Bump when the measurement changes: old cache files are then ignored.
-CALIBRATION_VERSION = 2
+CALIBRATION_VERSION = 3
 # Zero-velocity frames after the authors' settling: the lattice re-forms into a torus-periodic
 # one and its drift at rest falls from ~0.003 to < 1e-4 neurons per frame (docs/gridcells.md).
 WARM_FRAMES = 200
@@ -92,8 +91,8 @@ class FlowTable:
     """The measured flow of one network. `gain[j, k]` is the complex flow per unit of input
     (neurons per network unit, world frame) at direction angles[j] and speed speeds[k]
     (network units per frame); `scatter[j, k]` the per-frame standard deviation of the decoded
-    flow there (neurons). `lag`: the fraction of a change of input that shows one frame late,
-    (along, across) the direction of travel: a change of speed, a turn.
+    flow there (neurons). `lag`: the fraction of a change of flow that shows one frame late
+    (measured on a turn; LagInverter).
     `noise`: rms error per frame of the decoded velocity on a varying input, network units.
     `warm_state`, `warm_field`: the network's start (n×n)."""
 
@@ -103,7 +102,7 @@ class FlowTable:
     speeds: np.ndarray
     gain: np.ndarray
     scatter: np.ndarray
-    lag: tuple[float, float]
+    lag: float
     noise: float
     warm_state: np.ndarray
     warm_field: np.ndarray
@@ -171,7 +170,7 @@ class FlowTable:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(tmp, "wb") as handle:
             np.savez_compressed(handle, params=json.dumps(asdict(self.params)), search=self.search, angles=self.angles, speeds=self.speeds,
-                     gain=self.gain, scatter=self.scatter, lag=np.array(self.lag), noise=self.noise, warm_state=self.warm_state,
+                     gain=self.gain, scatter=self.scatter, lag=self.lag, noise=self.noise, warm_state=self.warm_state,
                      warm_field=self.warm_field, seconds=self.seconds, version=CALIBRATION_VERSION)
         os.replace(tmp, path)
         return path
@@ -182,7 +181,7 @@ class FlowTable:
             if int(data["version"]) != CALIBRATION_VERSION:
                 raise ValueError(f"calibration version {int(data['version'])}, expected {CALIBRATION_VERSION}")
             return cls(NetworkParams(**json.loads(str(data["params"]))), int(data["search"]), data["angles"], data["speeds"],
-                       data["gain"], data["scatter"], tuple(float(v) for v in data["lag"]), float(data["noise"]), data["warm_state"],
+                       data["gain"], data["scatter"], float(data["lag"]), float(data["noise"]), data["warm_state"],
                        data["warm_field"], float(data["seconds"]))
 
 
@@ -251,11 +250,11 @@ def measure_flow(params: NetworkParams, grid: CalibrationGrid = CalibrationGrid(
                             f"{grid.drives[measured]}; lower the drives")
     speeds, gain, scatter = speeds[:measured], gain[:, :measured], scatter[:, :measured]
     gain, scatter = np.vstack([gain, gain]), np.vstack([scatter, scatter])
-    table = FlowTable(params, search, angles, speeds, gain, scatter, (0.0, 0.0), 0.0, warm_state.astype(np.float32), warm_field.astype(np.float32))
+    table = FlowTable(params, search, angles, speeds, gain, scatter, 0.0, 0.0, warm_state.astype(np.float32), warm_field.astype(np.float32))
     lag, noise = _check_sequence(table, grid.check_frames)
     seconds = time.perf_counter() - started
-    log.info("calibrated the lattice flow of λ=%g (n=%d, α=%g) in %.1f s: lag %.3f along, %.3f across, noise %.3g units/frame",
-             params.lam, params.n, params.alpha, seconds, *lag, noise)
+    log.info("calibrated the lattice flow of λ=%g (n=%d, α=%g) in %.1f s: lag %.4f, noise %.3g units/frame",
+             params.lam, params.n, params.alpha, seconds, lag, noise)
     return FlowTable(params, search, angles, speeds, gain, scatter, lag, noise, table.warm_state, table.warm_field, seconds)
 
 
@@ -273,33 +272,51 @@ def check_velocities(frames: int, speed: float, seed: int = 0) -> np.ndarray:
     return velocities
 
 
-def _check_sequence(table: FlowTable, frames: int) -> tuple[tuple[float, float], float]:
-    """Drive the warm network with check_velocities and compare the decoded flow with the
-    table's prediction: the lags (along, across) of flow_k ≈ F_k + c·(F_{k−1} − F_k), the
-    change split along and across F_k (least squares), and the rms error of the velocity
-    decoded with those lags taken out (network units)."""
-    if frames < 3:
-        return (0.0, 0.0), 0.0
-    params = table.params
-    network = NetworkStack(params, settle=False)
+def check_flows(table: FlowTable, velocities: np.ndarray) -> np.ndarray:
+    """The decoded flow (complex, neurons per frame) of the table's warm network driven with
+    ``velocities`` (complex, network units per frame), one frame each."""
+    network = NetworkStack(table.params, settle=False)
     network.state = table.warm_state[None]
     network.set_field(table.warm_field[None])
-    # A typical speed: half the linear range.
-    velocities = check_velocities(frames, 0.15 / params.alpha)
     previous = network.fields[0]
-    measured = np.zeros(frames, dtype=complex)
+    measured = np.zeros(len(velocities), dtype=complex)
     for k, velocity in enumerate(velocities):
         field_ = network.run((velocity.real, velocity.imag))[0]
         dx, dy = decode_subpixel(previous, field_, table.search)
         measured[k] = complex(dx, -dy)
         previous = field_
+    return measured
+
+
+def lag_components(table: FlowTable, velocities: np.ndarray, measured: np.ndarray) -> tuple[float, float]:
+    """The one-frame lags (along, across) of measured flows: flow_k ≈ F_k + c·(F_{k−1} − F_k),
+    F the table's flow of each velocity, the change and the residual split along and across
+    F_k, each coefficient by least squares: a change of speed, a turn."""
     predicted = np.array([table.flow(v) for v in velocities])
     moving = np.abs(predicted[1:]) > 0
     direction = np.where(moving, predicted[1:] / np.where(moving, np.abs(predicted[1:]), 1), 0)
     change = (predicted[:-1] - predicted[1:]) * np.conj(direction)
     residual = (measured[1:] - predicted[1:]) * np.conj(direction)
-    lag = tuple(float(np.dot(part(residual), part(change)) / max(np.dot(part(change), part(change)), 1e-30))
-                for part in (np.real, np.imag))
+    along, across = (float(np.dot(part(residual), part(change)) / max(np.dot(part(change), part(change)), 1e-30))
+                     for part in (np.real, np.imag))
+    return along, across
+
+
+def _check_sequence(table: FlowTable, frames: int) -> tuple[float, float]:
+    """Drive the warm network with check_velocities at half the linear range (α|v| about
+    0.15) and compare the decoded flow with the table's: the lag c (lag_components' lag
+    across the direction of travel, a turn) and the rms error of the velocity decoded with it
+    (network units).
+
+    Across, because the direction follows a turn with about the same lag at every speed (2 %
+    from α|v| = 0.02 to 0.2 at n = 128); a change of speed shows more (2 % to 4 %), but taken
+    out with its own coefficient along each frame's direction it does not sum to the
+    displacement (docs/gridcells.md, "The step length from the lattice")."""
+    if frames < 3:
+        return 0.0, 0.0
+    velocities = check_velocities(frames, 0.15 / table.params.alpha)
+    measured = check_flows(table, velocities)
+    lag = lag_components(table, velocities, measured)[1]
     decoded = LagInverter(table, lag)
     errors = np.array([decoded(w) - v for w, v in zip(measured, velocities)])
     return lag, float(np.sqrt(np.mean(np.abs(errors[1:]) ** 2)))
@@ -307,25 +324,20 @@ def _check_sequence(table: FlowTable, frames: int) -> tuple[tuple[float, float],
 
 class LagInverter:
     """Per-frame decoding with the table: flow → input velocity, with the one-frame lag taken
-    out: flow_k = F_k + c_along·D∥ + c_across·D⊥, D = F_{k−1} − F_k split along and across
-    F_k, F_{k−1} the previous frame's own flow (solved for F_k by fixed-point iteration)."""
+    out. The model flow_k = F_k + c·(F_{k−1} − F_k) (F_{k−1} the previous frame's own flow) is
+    solved exactly, F_k = (flow_k − c·F_{k−1}) / (1 − c), and conserves the displacement: the
+    own flows sum to the decoded ones plus c times the last own flow, whatever the path, so the
+    per-frame noise of the flow does not accumulate through the lag."""
 
-    def __init__(self, table: FlowTable, lag: tuple[float, float] | None = None):
+    def __init__(self, table: FlowTable, lag: float | None = None):
         self.table = table
-        self.along, self.across = table.lag if lag is None else lag
+        self.lag = table.lag if lag is None else float(lag)
         self.previous_flow = 0j
 
     def __call__(self, flow: complex) -> complex:
-        own = flow
-        for _ in range(3):
-            if own == 0:
-                break
-            direction = own / abs(own)
-            change = (self.previous_flow - own) * direction.conjugate()
-            own = flow - direction * complex(self.along * change.real, self.across * change.imag)
-        velocity = self.table.invert(own)
+        own = (flow - self.lag * self.previous_flow) / (1.0 - self.lag)
         self.previous_flow = own
-        return velocity
+        return self.table.invert(own)
 
 
 # --- the disk cache ----------------------------------------------------------------------------

@@ -198,7 +198,9 @@ class GridCellIntegrator(PathIntegrator):
 
     ``step``: "odometry" (eq. 5: the step length from the ego-motion, the direction from the
     lattice) or "lattice" (the whole displacement from the calibrated flow: the network alone
-    integrates the path; needs the calibrated decoder). ``modules`` (calibrated decoder):
+    integrates the path; needs the calibrated decoder; a frame that no module can read, its flow
+    beyond every module's table or search window, is flagged saturated and takes its length
+    from the ego-motion as with "odometry"). ``modules`` (calibrated decoder):
     N networks of different grid spacings (velocity gains: module_params) and orientations
     (module_rotations), run as one batch, each decoded; their velocity estimates are combined
     weighted by their precision (1/noise² of their calibration), a module near its sheet's
@@ -334,9 +336,9 @@ class GridCellIntegrator(PathIntegrator):
                 weights = weights * np.array([AXIS_WEIGHT if _near_axis(u) else 1.0 for u in estimates])
             velocity = sum(w * u / rotation for w, u, rotation in zip(weights, estimates, self.rotations)) / weights.sum() / scale
             saturated = saturated or not within.any()
-            if self.step_source == "lattice":
+            if self.step_source == "lattice" and within.any():
                 x, y, step_length = x + velocity.real, y + velocity.imag, abs(velocity)
-            elif velocity != 0:  # eq. 5 with the calibrated direction
+            elif velocity != 0:  # eq. 5 with the calibrated direction (lattice step: no module could read its speed)
                 x += speed * velocity.real / abs(velocity)
                 y += speed * velocity.imag / abs(velocity)
                 step_length = speed
