@@ -123,6 +123,8 @@ def test_a_restarted_instance_rebuilds_its_block_from_the_acknowledged_frames_se
         """A fresh instance (a restart) given `payloads`: its increment per seq."""
         with lock:
             published.clear()
+        # The previous instance's subscription gone first: frames put while it still matched would be lost.
+        wait_for(lambda: not publisher.matching_status.matching)
         service = EgomotionService(runtime, "stereo", params, instance="a", shard_block=BLOCK)
         thread = threading.Thread(target=service.run)
         thread.start()
