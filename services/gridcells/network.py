@@ -472,12 +472,11 @@ class NetworkStack:
         dc = feedforward.astype(np.complex64)  # B on the zero-frequency bin (unnormalised inverse)
         r, f, h, rates, spectrum = self._r, self._f, self._h, self._rates, self._spectrum
         decay, ceiling, zeros = (self._decay if len(self) > 1 else self._decay.item()), self._ceiling, self._zeros
-        fftw = self.backend == "fftw"
+        fftw, w = self.backend == "fftw", (self._width if self.rank_one else m)   # w: the band's columns
         for _ in range(self.params.steps_per_frame if steps is None else steps):
             if fftw:
                 self._forward()
             elif self.rank_one:   # pruned to the band's columns, as with FFTW
-                w = self._width
                 rates[..., :w] = scipy.fft.fft(scipy.fft.rfft(r, axis=-1)[..., :w], axis=-2, overwrite_x=True)
             else:
                 rates[...] = scipy.fft.rfft2(r)

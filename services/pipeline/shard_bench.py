@@ -60,10 +60,9 @@ def main(argv: list[str] | None = None) -> int:
                  (f"{label}: throughput, each run", " ".join(f"{run['fps']:.1f}" for run in found), "frames/s"),
                  (f"{label}: latency frame→pose p50", median["p50"], "ms"),
                  (f"{label}: latency frame→pose p99", median["p99"], "ms")]
-        rows += [(f"{label}: CPU per frame, {name.removeprefix('cpu ')}", value, "ms")
-                 for name, value in median.items() if name.startswith("cpu ")]
-        rows += [(f"{label}: process CPU per frame, {name.removeprefix('process ')}", value, "ms")
-                 for name, value in median.items() if name.startswith("process ")]
+        for prefix, title in (("cpu ", "CPU per frame"), ("process ", "process CPU per frame")):
+            rows += [(f"{label}: {title}, {name.removeprefix(prefix)}", value, "ms")
+                     for name, value in median.items() if name.startswith(prefix)]
         services = sum(value for name, value in median.items() if name.startswith("process "))
         rows += [(f"{label}: process CPU per frame, all services (not the router, the recorder)", services, "ms"),
                  (f"{label}: throughput the cores allow ({os.cpu_count()} × 1000 / all services)",
