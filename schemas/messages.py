@@ -101,13 +101,17 @@ class ViewTemplate(Message):
     template_count: int = Field(ge=0, description="Templates stored so far.")
     loop_closure: bool = Field(
         False, description="True when this frame confirmed a loop closure, published on loop/closure just before.")
+    loop_closures: int = Field(
+        0, ge=0, description="How many loop closures this frame confirmed (its own and those of the earlier frames of "
+                             "the run of votes it completed), each a loop/closure message with this frame's seq just before.")
 
 
 class LoopClosure(Message):
     """`loop/closure`: a loop closure confirmed by the paper's consistency rule."""
 
-    header: Header = Field(description="Current frame index and timestamp.")
-    frame: int = Field(ge=0, description="Current frame.")
+    header: Header = Field(description="Index and timestamp of the frame that confirmed it.")
+    frame: int = Field(ge=0, description="The frame that revisits the place: the confirming frame, or an earlier frame of "
+                                         "the run of consistent votes it completed.")
     matched_frame: int = Field(ge=0, description="Earlier frame of the place recognised.")
     matched_template: int = Field(ge=0, description="Template id of the place recognised.")
     votes: int = Field(ge=1, description="Consistent possible closures within the window that confirmed it.")
@@ -116,7 +120,7 @@ class LoopClosure(Message):
                             "features), mono (essential matrix: rotation and direction), scanline (the view templates' "
                             "relative angle, the robot taken to be at the matched place), none (the geometry failed).")
     relative_pose: PlanarIncrement | None = Field(
-        None, description="Pose of the current frame in the matched frame's body frame (for mono, forward/left is a unit "
+        None, description="Pose of `frame` in the matched frame's body frame (for mono, forward/left is a unit "
                           "direction); absent when the measurement is none.")
     covariance: PlanarCovariance | None = covariance_field("the relative pose")
     inliers: int = Field(0, ge=0, description="Feature matches supporting the relative pose.")

@@ -14,7 +14,7 @@ import sys
 from services.common.errors import GridslamError
 
 # Command modules under services/cli/, in the order `gridslam --help` lists them.
-COMMANDS: tuple[str, ...] = ("demo", "run", "router", "service", "echo", "health", "schemas", "bench", "integrate", "simulate", "calibrate", "odometry", "map", "world", "export")
+COMMANDS: tuple[str, ...] = ("demo", "run", "router", "service", "echo", "health", "schemas", "bench", "integrate", "simulate", "calibrate", "odometry", "map", "world", "export", "vocabulary")
 
 
 def build_parser() -> argparse.ArgumentParser:

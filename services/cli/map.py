@@ -18,6 +18,7 @@ from services.common.config import load_config, presets
 from services.common.errors import ConfigError
 from services.evaluation.results import format_table
 from services.expmap.service import add_map_arguments
+from services.loopclosure.service import add_place_recognition_argument
 
 
 def register(subparsers) -> None:
@@ -51,6 +52,7 @@ def register(subparsers) -> None:
         command.add_argument("--same-place-radius", type=float, default=1.0,
                              help="a closure between frames whose odometric positions are farther apart is counted as false (m)")
         _add_params(command, "loopclosure, expmap and gridcells parameters")
+        add_place_recognition_argument(command)
         if name == "build":
             add_map_arguments(command)
             command.add_argument("--match-threshold", type=float, help="override the template match threshold")
@@ -118,7 +120,7 @@ def _inputs(args):
 
     if not (args.same_place_radius > 0 and math.isfinite(args.same_place_radius)):
         raise ConfigError(f"--same-place-radius must be a positive number of metres, got {args.same_place_radius}")
-    overrides = {name: getattr(args, name, None) for name in ("match_threshold", "tolerance", "closure")}
+    overrides = {name: getattr(args, name, None) for name in ("match_threshold", "tolerance", "closure", "place_recognition")}
     loopclosure = _config(LoopClosureConfig, "loopclosure", args, overrides)
     expmap = _config(ExpMapConfig, "expmap", args, {"closure": getattr(args, "closure", None),
                                                     "optimizer": getattr(args, "map_optimizer", None)})

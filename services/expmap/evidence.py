@@ -33,8 +33,7 @@ from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams, 
 from services.expmap.store import MapStore, Step
 from services.gridcells.motion_io import add_noise, load_motion
 from services.gridcells.offline import run_deadreckoning, run_grid
-from services.loopclosure.consistency import Closure
-from services.loopclosure.detector import LoopClosureDetector
+from services.loopclosure.detector import Confirmed, LoopClosureDetector
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +56,7 @@ class OfflineMap:
     matched_frames: np.ndarray      # (N,) frame at which the matched template was stored
     possible: np.ndarray            # (N,) bool: a match of a non-recent template (a possible closure)
     experiences: np.ndarray         # (N,) the experience the robot is at
-    closures: list[Closure]
+    closures: list[Confirmed]
     experience_map: ExperienceMap
     template_count: int
     steps: list[Step]               # the map's inputs (odometry pose, template, closure), as its log holds them
@@ -141,6 +140,14 @@ def odometry_from_motion(path, integrator: str = "deadreckoning", decoder: str =
     raise EvidenceError(f"unknown integrator {integrator!r} (grid or deadreckoning)")
 
 
+def closure_input(closure: Confirmed, seq: int) -> ClosureInput:
+    """The map's input of a closure confirmed at frame ``seq``."""
+    m = closure.measurement
+    return ClosureInput(closure.matched_template, closure.matched_frame, m.method if m.method != "none" else "", m.forward,
+                        m.left, m.yaw, m.covariance, closure.votes, m.inliers, m.error,
+                        closure.frame if closure.frame != seq else -1)
+
+
 def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetector, map_params: MapParams,
               store: Path | None = None, reference: Trajectory | None = None) -> OfflineMap:
     """Run the loop-closure detector and the experience map over `images` (frames with `seq`,
@@ -150,14 +157,13 @@ def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetec
     `reference` (row k at frame k; None: the odometry)."""
     x, y, heading = odometry.planar()
     experience_map = ExperienceMap(map_params)
-    recent_frames = detector.rule.params.recent_frames
     map_store = MapStore(store, map_params) if store is not None else None
     if map_store is not None and map_store.steps:
         map_store.close()
         raise EvidenceError(f"{store}: already holds a map; choose a new file")
     columns: dict[str, list] = {name: [] for name in ("frames", "template_ids", "is_new", "distances", "matched_frames",
                                                       "possible", "experiences")}
-    closures: list[Closure] = []
+    closures: list[Confirmed] = []
     steps: list[Step] = []
     before = None
     try:
@@ -166,15 +172,11 @@ def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetec
             if seq >= len(x):
                 raise EvidenceError(f"frame {seq}: the odometry has only {len(x)} poses")
             observed = detector.observe(seq, frame.left, getattr(frame, "right", None), getattr(frame, "camera", None))
-            match, closure, measurement = observed.match, observed.closure, observed.measurement
+            match = observed.match
             pose = (float(x[seq]), float(y[seq]), float(heading[seq]))
-            closure_input = None
-            if closure is not None:
-                m = measurement
-                closure_input = ClosureInput(closure.matched_template, closure.matched_frame,
-                                             m.method if m.method != "none" else "", m.forward, m.left, m.yaw,
-                                             m.covariance, closure.votes, m.inliers, m.error)
-            step = Step(seq, float(frame.stamp), pose, match.template_id, closure_input)
+            own = next((closure_input(c, seq) for c in observed.closures if c.frame == seq), None)
+            earlier = tuple(closure_input(c, seq) for c in observed.closures if c.frame != seq)
+            step = Step(seq, float(frame.stamp), pose, match.template_id, own, earlier=earlier)
             if map_store is not None:
                 map_store.append(step)
             steps.append(step)
@@ -182,11 +184,10 @@ def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetec
             result = step.apply(experience_map)
             if before is None and any(link.loop_closure and link.accepted for link in result.new_links):
                 before = state
-            if closure is not None:
-                closures.append(closure)
+            closures += observed.closures
             for name, value in (("frames", seq), ("template_ids", match.template_id), ("is_new", match.is_new),
                                 ("distances", match.distance), ("matched_frames", match.matched_frame),
-                                ("possible", not match.is_new and seq - match.matched_frame >= recent_frames),
+                                ("possible", bool(observed.votes)),
                                 ("experiences", result.experience)):
                 columns[name].append(value)
     finally:

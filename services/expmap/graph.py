@@ -168,6 +168,7 @@ class ClosureInput:
     votes: int = 0                 # evidence only (loop_closures.csv): the consistency rule's votes,
     inliers: int = 0               # the feature matches behind the measurement,
     geometry_error: str = ""       # why there is no measurement
+    frame: int = -1                # the revisiting frame when it is an earlier one than the step's (-1: the step's)
 
     @property
     def measured(self) -> bool:
@@ -186,6 +187,7 @@ class FrameResult:
     moved: list[int] = field(default_factory=list)   # experiences moved by the optimiser beyond 1 mm / 0.1 mrad
     closure: str | None = None                # this frame's closure: accepted, rejected, unmeasured, unmatched
     residual: float | None = None             # the closure's residual after solving, standard deviations
+    decisions: list[tuple[ClosureInput, str, float | None]] = field(default_factory=list)   # every closure decided
 
 
 @dataclass(frozen=True, eq=False)
@@ -201,6 +203,9 @@ class MapState:
 
 MOVED = np.array([1e-3, 1e-3, 1e-4])   # what counts as moved: 1 mm, 0.1 mrad
 IDENTITY = (0.0, 0.0, 0.0)
+# Frames whose offset covariance is kept, for closures of earlier frames of a confirmed run (the
+# consistency rule's window is ten frames).
+RECENT_COVARIANCES = 64
 
 
 class ExperienceMap:
@@ -222,6 +227,7 @@ class ExperienceMap:
         self.residuals: list[float | None] = []         # each decision's closure residual, standard deviations
         self._frame_at: dict[int, int] = {}             # frame → its row of `frames`
         self._by_template: dict[int, int] = {}          # template → its latest experience
+        self._recent_covariances: dict[int, np.ndarray] = {}   # frame → its offset covariance, the last frames'
         from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
         self.optimizer = PoseGraph(self) if params.optimizer == "gtsam" else Relaxation(self)
 
@@ -234,10 +240,13 @@ class ExperienceMap:
         return self._poses[:len(self.templates)]
 
     def step(self, frame: int, odometry: tuple[float, float, float], template_id: int,
-             closure: ClosureInput | None = None, covariance: tuple[float, ...] | None = None) -> FrameResult:
+             closure: ClosureInput | None = None, covariance: tuple[float, ...] | None = None,
+             earlier: tuple[ClosureInput, ...] = ()) -> FrameResult:
         """Apply one frame: odometry pose (x, y, heading), its view template, an optional
-        confirmed closure, and the covariance (3×3 row-major, forward, left, yaw) of the
-        odometry's increment since the previous frame, when the odometry knows it."""
+        confirmed closure, the covariance (3×3 row-major, forward, left, yaw) of the
+        odometry's increment since the previous frame, when the odometry knows it, and the
+        closures of earlier frames confirmed with this frame's (`ClosureInput.frame`: frames
+        the map has, at most RECENT_COVARIANCES back)."""
         if not all(math.isfinite(v) for v in odometry):
             raise ValueError(f"frame {frame}: odometry pose {odometry} is not finite")
         result = FrameResult(frame, -1, (0.0, 0.0, 0.0))
@@ -268,14 +277,17 @@ class ExperienceMap:
             if not closure.measured:
                 result.closure = "unmeasured"
             elif target != self.current:
-                measurement, covariance = self._measurement(closure, target, matched_offset, offset)
+                measurement, covariance = self._measurement(closure, target, matched_offset, offset, self.current,
+                                                            self.offset_covariance)
                 self._decide(self._closure_link(self.current, target, offset, measurement, matched_offset, frame),
                              covariance, result)
         if result.closure is not None:
-            self.closures[result.closure] += 1
-            self.decisions.append((frame, closure.matched_frame, result.closure))
-            self.residuals.append(result.residual)
-        moved = self.optimizer.solve(closure_frame=result.closure in ("accepted", "rejected"))
+            self._record(frame, closure, result)
+        self._recent_covariances[frame] = self.offset_covariance.copy()
+        self._recent_covariances.pop(frame - RECENT_COVARIANCES, None)
+        for closure in earlier:
+            self._earlier_closure(closure, frame, result)
+        moved = self.optimizer.solve(closure_frame=any(fate in ("accepted", "rejected") for _, fate, _ in result.decisions))
         result.moved = [i for i in moved if i not in result.new_experiences]
         result.experience = self.current
         result.pose = compose(tuple(self._poses[self.current]), offset)
@@ -283,6 +295,38 @@ class ExperienceMap:
         self.frames.append((frame, self.current, offset))
         self.last_frame = frame
         return result
+
+    def _record(self, frame: int, closure: ClosureInput, result: FrameResult) -> None:
+        self.closures[result.closure] += 1
+        self.decisions.append((frame, closure.matched_frame, result.closure))
+        self.residuals.append(result.residual)
+        result.decisions.append((closure, result.closure, result.residual))
+
+    def _earlier_closure(self, closure: ClosureInput, frame: int, result: FrameResult) -> None:
+        """A closure of an earlier frame (metric closures only: a snap moves the robot, which an
+        earlier frame cannot), linked from the experience the robot was at then; "unmatched" when
+        that frame is not among the map's last RECENT_COVARIANCES."""
+        row = self._frame_at.get(closure.frame)
+        covariance = self._recent_covariances.get(closure.frame)
+        decided = FrameResult(closure.frame, -1, IDENTITY)
+        target = None
+        if row is not None and covariance is not None and closure.frame < frame:
+            _, source, offset = self.frames[row]
+            target, matched_offset = self._place_of(closure)
+        if target is None:
+            decided.closure = "unmatched"
+        elif self.params.closure != "metric":
+            return
+        elif not closure.measured:
+            decided.closure = "unmeasured"
+        elif target != source:
+            measurement, link_covariance = self._measurement(closure, target, matched_offset, offset, source, covariance)
+            self._decide(self._closure_link(source, target, offset, measurement, matched_offset, closure.frame),
+                         link_covariance, decided)
+        if decided.closure is not None:
+            self._record(closure.frame, closure, decided)
+            result.decisions += decided.decisions
+            result.new_links += decided.new_links
 
     def trajectory(self) -> list[tuple[int, float, float, float]]:
         """(frame, x, y, heading) of every frame, placed on the final map (`final_poses`)."""
@@ -319,6 +363,8 @@ class ExperienceMap:
                 "decisions": np.array([(frame, matched, FATES.index(fate)) for frame, matched, fate in self.decisions],
                                       dtype=np.int64).reshape(-1, 3),
                 "residuals": np.array([np.nan if r is None else r for r in self.residuals], dtype=float),
+                "recent_covariances": np.array([(frame, *c.ravel()) for frame, c in self._recent_covariances.items()],
+                                               dtype=float).reshape(-1, 10),
                 **self.optimizer.state()}
 
     @classmethod
@@ -357,6 +403,8 @@ class ExperienceMap:
         self.closures = {fate: int(count) for fate, count in zip(FATES, state["closure_counts"], strict=True)}
         self.decisions = [(int(frame), int(matched), FATES[fate]) for frame, matched, fate in state["decisions"]]
         self.residuals = [None if np.isnan(r) else float(r) for r in state["residuals"]]
+        self._recent_covariances = {int(row[0]): np.array(row[1:]).reshape(3, 3)
+                                    for row in state.get("recent_covariances", np.zeros((0, 10)))}
         if len(self.residuals) != len(self.decisions):
             raise ValueError("decisions and residuals of different lengths")
         self._frame_at = {frame: row for row, (frame, _, _) in enumerate(self.frames)}
@@ -388,14 +436,16 @@ class ExperienceMap:
         result.residual = residual
         return accepted
 
-    def _measurement(self, closure: ClosureInput, target: int, matched_offset, offset) -> tuple[tuple[float, float, float], np.ndarray]:
-        """The measured pose of the current frame in the matched frame's, and the covariance of the
-        link current → target that carries it (right-hand tangent perturbation, the convention of
-        the pose graph's factors)."""
+    def _measurement(self, closure: ClosureInput, target: int, matched_offset, offset, source: int,
+                     offset_covariance: np.ndarray) -> tuple[tuple[float, float, float], np.ndarray]:
+        """The measured pose of the revisiting frame (at `offset` from experience `source`, its
+        covariance `offset_covariance`) in the matched frame's, and the covariance of the link
+        source → target that carries it (right-hand tangent perturbation, the convention of the
+        pose graph's factors)."""
         covariance = np.array(closure.covariance, dtype=float).reshape(3, 3)
         forward, left = closure.forward, closure.left
         if closure.method == "mono":   # a direction: its length from the map's own estimate
-            frame_pose = compose(tuple(self._poses[self.current]), offset)
+            frame_pose = compose(tuple(self._poses[source]), offset)
             matched_pose = compose(tuple(self._poses[target]), matched_offset)
             length = math.hypot(*between(matched_pose, frame_pose)[:2])
             norm = math.hypot(forward, left) or 1.0
@@ -408,8 +458,8 @@ class ExperienceMap:
         # Component noise of the measurement → right tangent: rotate the translation part into its frame.
         c, s = math.cos(closure.yaw), math.sin(closure.yaw)
         to_tangent = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-        # The odometry from the current experience to this frame (the offset) is uncertain too.
-        tangent = to_tangent @ covariance @ to_tangent.T + self.offset_covariance
+        # The odometry from the source experience to the frame (the offset) is uncertain too.
+        tangent = to_tangent @ covariance @ to_tangent.T + offset_covariance
         # The link offset ∘ measurement⁻¹ ∘ matched⁻¹, with measurement ∘ Exp(δ) (or offset ∘ Exp(δ)), is the
         # link ∘ Exp(∓Ad(matched ∘ measurement) δ).
         carry = adjoint(compose(matched_offset, measurement))

@@ -62,6 +62,7 @@ class PoseGraph:
         self._refresh: set[int] = set()     # experiences whose estimate the last updates touched
         self._cursor = 0                    # round-robin refresh position
         self.updates = 0                    # solver updates since the solver was (re)built
+        self._tested = False                # a closure was tested since the last solve(): its estimates are newer
         p = experience_map.params
         kernels = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "geman_mcclure": gtsam.noiseModel.mEstimator.GemanMcClure,
                    "dcs": gtsam.noiseModel.mEstimator.DCS, "huber": gtsam.noiseModel.mEstimator.Huber}
@@ -91,7 +92,12 @@ class PoseGraph:
         in standard deviations)."""
         self.covariances.append(covariance)
         information = np.linalg.inv(covariance)
-        innovation = self._residual(link, self._pose(link.source), self.isam.calculateEstimatePose2(link.target)
+        # The prediction: the published pose of the source (what the frame was composed from)
+        # and the solver's estimate of the target; after another closure of the same frame was
+        # tested, the published poses lag the solver's, so both ends come from the solver.
+        source = self.isam.calculateEstimatePose2(link.source) if self._tested and link.source < self._solved \
+            else self._pose(link.source)
+        innovation = self._residual(link, source, self.isam.calculateEstimatePose2(link.target)
                                     if link.target < self._solved else self._pose(link.target))
         self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
         index = self._solve().getNewFactorsIndices()[-1]
@@ -106,6 +112,7 @@ class PoseGraph:
             self._update(remove=[index])
         elif not accepted:   # refused: out of the graph, and the estimate settles back without it
             self._solve(remove=[index])
+        self._tested = True
         return accepted, statistic
 
     def _solve(self, remove: list[int] | None = None):
@@ -193,6 +200,7 @@ class PoseGraph:
     def solve(self, closure_frame: bool) -> list[int]:
         """Refresh the published poses after a closure frame's solve: those the solver touched
         plus the next REFRESH_PER_SOLVE; the experiences that moved. Other frames solve nothing."""
+        self._tested = False
         if not closure_frame or not self._solved:
             return []
         count = self._solved

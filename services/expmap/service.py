@@ -101,17 +101,18 @@ def link_message(link) -> Link:
     return Link(**asdict(link))
 
 
-def closure_row(step: Step, fate: str, residual: float | None) -> tuple:
-    """loop_closures.csv's row of a frame whose closure the map decided on."""
-    c = step.closure
-    return (step.frame, c.matched_frame, c.matched_template, c.votes, c.method or "none", f"{c.forward:.4f}",
+def closure_row(frame: int, c: ClosureInput, fate: str, residual: float | None) -> tuple:
+    """loop_closures.csv's row of a closure the map decided on (``frame``: the revisiting frame)."""
+    return (frame, c.matched_frame, c.matched_template, c.votes, c.method or "none", f"{c.forward:.4f}",
             f"{c.left:.4f}", f"{c.yaw:.5f}", c.inliers, c.geometry_error, "" if residual is None else f"{residual:.3f}",
             str(fate == "accepted").lower())
 
 
 def closure_input(message: LoopClosure) -> ClosureInput:
-    """The map's view of a confirmed closure: the matched place and the measurement, if any."""
-    evidence = {"votes": message.votes, "inliers": message.inliers, "geometry_error": message.geometry_error}
+    """The map's view of a confirmed closure: the matched place and the measurement, if any;
+    ``frame`` set when the closure is of an earlier frame than the one that confirmed it."""
+    evidence = {"votes": message.votes, "inliers": message.inliers, "geometry_error": message.geometry_error,
+                "frame": message.frame if message.frame != message.header.seq else -1}
     pose = message.relative_pose
     if message.measurement == "none" or pose is None or message.covariance is None:
         return ClosureInput(message.matched_template, message.matched_frame, **evidence)
@@ -138,9 +139,10 @@ class ExpMapService(Service):
         for frame, experience, x, y, heading in extras.get("recent", []):   # before the checkpoint: not replayed
             self.recent[int(frame)] = FrameResult(int(frame), int(experience), (float(x), float(y), float(heading)))
         self.recent = collections.OrderedDict(sorted(self.recent.items())[-REPLAY_FRAMES:])
-        step_of = {step.frame: step for step in self.store.steps}
-        rows = [closure_row(step_of[frame], fate, residual)
-                for (frame, _, fate), residual in zip(self.map.decisions, self.map.residuals)]
+        closure_of = {(c.frame if c.frame >= 0 else step.frame, c.matched_frame): c
+                      for step in self.store.steps for c in step.closures}
+        rows = [closure_row(frame, closure_of[(frame, matched)], fate, residual)
+                for (frame, matched, fate), residual in zip(self.map.decisions, self.map.residuals)]
         if self.csv_path is not None:   # written afresh from the journal: a crash never leaves it behind
             try:
                 self.csv_path.parent.mkdir(parents=True, exist_ok=True)
@@ -154,13 +156,14 @@ class ExpMapService(Service):
                      len(self.map), len(self.map.links))
         self.poses: dict[int, GridPose] = {}
         self.views: dict[int, ViewTemplate] = {}
-        self.closures: dict[int, LoopClosure] = {}
+        self.closures: dict[int, list[LoopClosure]] = {}   # by the seq of the frame that confirmed them
         self.skipped = 0   # frames with a pose but no view template
 
     def setup(self) -> None:
         self.subscribe("grid/pose", self.on_grid_pose)
         self.subscribe("view/template", self.on_view)
-        self.subscribe("loop/closure", self.on_closure, sparse=True)
+        # Several closures share a frame's seq (a confirmed run's): the repeated seq is not stale here.
+        self.subscribe("loop/closure", self.on_closure, sparse=True, drop_stale=False)
         self.queryable("map/snapshot", self.snapshot)
 
     def teardown(self) -> None:
@@ -181,7 +184,11 @@ class ExpMapService(Service):
         self._advance()
 
     def on_closure(self, message: LoopClosure) -> None:
-        self.closures[message.header.seq] = message
+        if self.map.last_frame is not None and message.header.seq <= self.map.last_frame:
+            return   # a frame re-sent after a restart: the map has it
+        closures = self.closures.setdefault(message.header.seq, [])
+        if all(c.frame != message.frame for c in closures):   # a frame re-sent after a restart brings them again
+            closures.append(message)
         self._advance()
 
     def _advance(self) -> None:
@@ -197,26 +204,34 @@ class ExpMapService(Service):
                 self.skipped += 1
                 log.warning("expmap: frame %d skipped: no view template for it, later ones arrived", seq)
                 continue
-            if view is None or (view.loop_closure and seq not in self.closures):
+            if view is None:
+                return
+            in_map = self.map.last_frame is not None and seq <= self.map.last_frame   # re-sent after a restart
+            if not in_map and len(self.closures.get(seq, ())) < max(view.loop_closures, int(view.loop_closure)):
                 return
             pose = self.poses.pop(seq)
             self.views.pop(seq)
-            closure = self.closures.pop(seq, None)
+            closures = sorted(self.closures.pop(seq, ()), key=lambda c: c.frame)
+            own = next((closure_input(c) for c in closures if c.frame == seq), None)
+            earlier = tuple(closure_input(c) for c in closures if c.frame != seq)
             for stale in [s for s in self.views if s < seq]:
                 del self.views[stale]
-            if self.map.last_frame is not None and seq <= self.map.last_frame:
+            for stale in [s for s in self.closures if s < seq]:
+                del self.closures[stale]
+            if in_map:
                 if seq in self.recent:   # already in the map (a re-sent frame after a restart): answer again
                     self._publish_pose(pose, self.recent[seq])
                 continue
             step = Step(seq, pose.header.stamp.to_seconds(), (pose.pose.position.x, pose.pose.position.y, pose.heading),
-                        view.template_id, closure_input(closure) if closure else None,
-                        tuple(pose.increment_covariance) if pose.increment_covariance is not None else None)
+                        view.template_id, own, tuple(pose.increment_covariance) if pose.increment_covariance is not None
+                        else None, earlier)
             self.store.append(step)   # on disk before anything is published
             with self.lock:
                 result = step.apply(self.map)
             self._remember(result)
-            if self.csv_path is not None and result.closure is not None:
-                self._write_closures([closure_row(step, result.closure, result.residual)], "a")
+            if self.csv_path is not None and result.decisions:
+                self._write_closures([closure_row(c.frame if c.frame >= 0 else seq, c, fate, residual)
+                                      for c, fate, residual in result.decisions], "a")
             self._publish(pose, result)
             if self.store.checkpoint_due(self.map):
                 self._checkpoint()

@@ -52,24 +52,35 @@ class Step:
     template_id: int
     closure: ClosureInput | None = None
     covariance: tuple[float, ...] | None = None   # of the odometry's increment since the previous frame
+    earlier: tuple[ClosureInput, ...] = ()         # closures of earlier frames confirmed at this one
 
     def apply(self, experience_map: ExperienceMap) -> FrameResult:
-        return experience_map.step(self.frame, self.odometry, self.template_id, self.closure, self.covariance)
+        return experience_map.step(self.frame, self.odometry, self.template_id, self.closure, self.covariance,
+                                   self.earlier)
+
+    @property
+    def closures(self) -> tuple[ClosureInput, ...]:
+        """Every closure the step brings, its own first."""
+        return ((self.closure,) if self.closure else ()) + self.earlier
 
     def record(self) -> dict:
         return {"frame": self.frame, "stamp": self.stamp, "odometry": list(self.odometry), "template": self.template_id,
                 "closure": asdict(self.closure) if self.closure else None,
-                "covariance": list(self.covariance) if self.covariance is not None else None}
+                "covariance": list(self.covariance) if self.covariance is not None else None,
+                **({"earlier": [asdict(c) for c in self.earlier]} if self.earlier else {})}
 
     @classmethod
     def from_record(cls, record: dict) -> Step:
         """The step a journal record holds; KeyError, TypeError or ValueError when it holds none."""
+        def closure_of(fields: dict) -> ClosureInput:
+            return ClosureInput(**{**fields, "covariance": tuple(float(v) for v in fields["covariance"])})
+
         closure = record["closure"]
-        if closure is not None:
-            closure = ClosureInput(**{**closure, "covariance": tuple(float(v) for v in closure["covariance"])})
         covariance = record["covariance"]
         return cls(int(record["frame"]), float(record["stamp"]), tuple(float(v) for v in record["odometry"]),
-                   int(record["template"]), closure, tuple(float(v) for v in covariance) if covariance is not None else None)
+                   int(record["template"]), closure_of(closure) if closure is not None else None,
+                   tuple(float(v) for v in covariance) if covariance is not None else None,
+                   tuple(closure_of(c) for c in record.get("earlier", ())))
 
 
 def header(params: MapParams) -> dict:

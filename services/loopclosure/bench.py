@@ -99,13 +99,12 @@ def confirmed_closures(spec: str, preset: str, matcher: str) -> set[tuple[int, i
     from services.source.spec import open_source
 
     config = load_config(LoopClosureConfig, "loopclosure", preset=preset).model_copy(
-        update={"matcher": matcher, "closure": "ratslam"})
+        update={"matcher": matcher, "closure": "ratslam", "place_recognition": "scanline"})
     detector = config.detector()
     closures = set()
     for frame in open_source(spec, preset=preset, mono=True):
         observed = detector.observe(frame.seq, frame.left)
-        if observed.closure is not None:
-            closures.add((frame.seq, observed.closure.matched_frame))
+        closures.update((closure.frame, closure.matched_frame) for closure in observed.closures)
     return closures
 
 

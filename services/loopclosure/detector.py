@@ -1,12 +1,19 @@
-"""The loop-closure detector, a pure core: view templates, the paper's consistency rule, and the
+"""The loop-closure detector, a pure core: place recognition, the paper's consistency rule, and the
 geometry of a confirmed closure, frame by frame. The loopclosure service and the offline map
 build (services/expmap/evidence.py) drive the same object.
 
-Per frame: the view is matched against the stored templates (templates.py); a view unlike any
-becomes a new template, and its frame a keyframe (geometry.py: features, and for stereo their
-depth; kept in a KeyframeStore, or in memory); the match is a vote of the consistency rule
-(consistency.py). When the rule confirms a closure, its relative pose is measured
-(`geometry`):
+Per frame: the view is recognised (`place_recognition`, one of PLACE_RECOGNITIONS):
+
+- `scanline`: RatSLAM's view templates (templates.py), the paper's model;
+- `bow`: a bag of binary words (bow.py): the frame's ORB features quantised into visual words,
+  the stored places that share most of them verified geometrically;
+- `sequence`: SeqSLAM's sequences of small patch-normalised images (sequence.py).
+
+A view unlike every stored place becomes a new place, and its frame a keyframe (geometry.py:
+features, and for stereo their depth; kept in a KeyframeStore, or in memory). A match of a place
+stored at least `recent_frames` ago is a *vote*, a possible closure; each vote is measured as it
+is made (`geometry`), so that a closure confirmed later by the rule (consistency.py) carries the
+measurement of its own frame — the rule confirms the run of votes, earlier frames included:
 
 - `auto` (default): from the images — stereo PnP against the matched keyframe's 3D points when
   that frame was stereo, the essential matrix (rotation and direction) when it was monocular
@@ -17,23 +24,27 @@ depth; kept in a KeyframeStore, or in memory); the match is a vote of the consis
 - `none`: no measurement (the map can then only snap, closure = ratslam).
 
 A closure whose geometry fails is published with measurement `none` and the reason, and counted.
+Everything a frame changes is in its Observation (`journal_view`, `votes`), so that `replay`
+rebuilds the same state from a journal after a restart.
 """
 
 from __future__ import annotations
 
 import collections
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from services.common.errors import ConfigError
-from services.loopclosure.consistency import Closure, ConsistencyParams, ConsistencyRule
-from services.loopclosure.geometry import ClosureGeometry, GeometryParams, Keyframe
-from services.loopclosure.templates import TemplateParams, ViewMatch, ViewTemplates
+from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule, Vote
+from services.loopclosure.geometry import ClosureGeometry, Features, GeometryParams, Keyframe
+from services.loopclosure.places import PLACE_RECOGNITIONS, Recognised, recogniser
+from services.loopclosure.templates import ViewMatch
 from services.source.frames import Camera
 
 GEOMETRIES = ("auto", "scanline", "none")
 MEMORY_KEYFRAMES = 4096   # keyframes kept without a store (the oldest go first)
+MAX_VOTES = 3             # possible closures measured per frame (a recogniser's best)
 
 
 @dataclass(frozen=True)
@@ -51,10 +62,33 @@ class Measurement:
 
 
 @dataclass(frozen=True)
+class MeasuredVote:
+    """A possible closure of a frame and its measurement."""
+
+    template: int
+    matched_frame: int
+    measurement: Measurement
+
+
+@dataclass(frozen=True)
+class Confirmed:
+    """A loop closure the rule confirmed: ``frame`` (this frame, or an earlier one of the run)
+    revisits the place stored at ``matched_frame``."""
+
+    frame: int
+    matched_frame: int
+    matched_template: int
+    votes: int
+    measurement: Measurement
+
+
+@dataclass(frozen=True)
 class Observation:
     match: ViewMatch
-    closure: Closure | None
-    measurement: Measurement | None   # for a closure
+    closures: tuple[Confirmed, ...]             # confirmed at this frame, oldest frame first
+    votes: tuple[MeasuredVote, ...] = ()        # this frame's possible closures
+    journal_view: dict | None = None            # what the recogniser must replay (a new place, a sequence patch)
+    candidate: tuple[int, float] | None = None  # the best older place's frame and score (precision–recall)
 
 
 class MemoryKeyframes:
@@ -83,63 +117,110 @@ class MemoryKeyframes:
         pass
 
 
+@dataclass
+class _Frame:
+    """The current frame as the detector sees it: its images and, once found, its features."""
+
+    seq: int
+    left: np.ndarray
+    right: np.ndarray | None
+    camera: Camera | None
+    geometry: ClosureGeometry
+    _features: Features | None = field(default=None, repr=False)
+
+    @property
+    def features(self) -> Features:
+        if self._features is None:
+            self._features = self.geometry.features(self.left)
+        return self._features
+
+
 class LoopClosureDetector:
-    def __init__(self, templates: TemplateParams, consistency: ConsistencyParams,
-                 geometry: GeometryParams = GeometryParams(), mode: str = "auto",
-                 scanline_translation_sigma: float = 0.5, scanline_heading_sigma: float = 0.05,
-                 keyframes=None):
+    def __init__(self, places, consistency: ConsistencyParams, geometry: GeometryParams = GeometryParams(),
+                 mode: str = "auto", scanline_translation_sigma: float = 0.5, scanline_heading_sigma: float = 0.05,
+                 keyframes=None, place_recognition: str = "scanline"):
+        """``places``: the recogniser's parameters (TemplateParams for scanline, PlaceParams
+        for bow and sequence: places.py)."""
         if mode not in GEOMETRIES:
             raise ConfigError(f"loop closure: geometry {mode!r} is not one of {', '.join(GEOMETRIES)}")
-        self.templates = ViewTemplates(templates)
+        if place_recognition not in PLACE_RECOGNITIONS:
+            raise ConfigError(f"loop closure: place recognition {place_recognition!r} is not one of "
+                              f"{', '.join(PLACE_RECOGNITIONS)}")
         self.rule = ConsistencyRule(consistency)
         self.geometry = ClosureGeometry(geometry)
+        self.places = recogniser(place_recognition, places, consistency.recent_frames)
+        self.place_recognition = place_recognition
         self.mode = mode
         self.scanline_covariance = tuple(np.diag([scanline_translation_sigma ** 2, scanline_translation_sigma ** 2,
                                                   scanline_heading_sigma ** 2]).ravel())
         self.keyframes = keyframes if keyframes is not None else MemoryKeyframes()
+        # The measured votes of the rule's window, by (frame, template): a run confirmed later
+        # takes its earlier frames' measurements from here.
+        self._measured: dict[tuple[int, int], Measurement] = {}
         self.counts = {"closures": 0, "geometry_failed": 0}
+
+    @property
+    def templates(self):
+        """The stored places (len() is their number)."""
+        return self.places
 
     def observe(self, seq: int, left: np.ndarray, right: np.ndarray | None = None,
                 camera: Camera | None = None) -> Observation:
-        """Match one frame (grey or BGR images; `right` for stereo), keep its keyframe when it is a
-        new template, and measure the closure the rule confirms."""
-        match = self.templates.observe(left, seq)
-        if match.is_new and self.mode == "auto":
-            self.keyframes.append(match.template_id, self.geometry.keyframe(left, right, camera))
-        closure = self.rule.update(seq, match.template_id, match.is_new, match.matched_frame)
-        measurement = self._measure(match, closure, left, camera) if closure is not None else None
-        return Observation(match, closure, measurement)
-
-    def replay(self, seq: int, match: ViewMatch, patch: np.ndarray | None, measurement: Measurement | None) -> Closure | None:
-        """Rebuild the state one journaled frame left (its template, if new, its vote, its counts);
-        the keyframes are in the store already."""
+        """Recognise one frame (grey or BGR images; `right` for stereo), keep its keyframe when it
+        is a new place, measure its possible closures, and return the closures the rule confirms."""
+        frame = _Frame(seq, left, right, camera, self.geometry)
+        recognised: Recognised = self.places.observe(seq, frame, self.keyframes.get)
+        match, journal_view = recognised.match, recognised.journal_view
         if match.is_new:
-            self.templates.add(patch, seq)
-        closure = self.rule.update(seq, match.template_id, match.is_new, match.matched_frame)
-        if closure is not None:
-            self.counts["closures"] += 1
-            self.counts["geometry_failed"] += measurement is not None and measurement.method == "none" and \
-                self.mode != "none"
-        return closure
+            keyframe = None
+            if self.mode == "auto" or self.places.needs_keyframes:
+                keyframe = self.geometry.keyframe(left, right, camera)
+                self.keyframes.append(match.template_id, keyframe)
+            journal_view = {**(journal_view or {}), **(self.places.store(match, keyframe) or {})}
+        recent = self.rule.params.recent_frames
+        votes = tuple(MeasuredVote(template, matched, self._measure(template, matched, match, frame))
+                      for template, matched in recognised.votes[:MAX_VOTES] if seq - matched >= recent)
+        closures = self._confirm(seq, votes)
+        return Observation(match, closures, votes, journal_view, recognised.candidate)
 
-    def _measure(self, match: ViewMatch, closure: Closure, left, camera) -> Measurement:
-        self.counts["closures"] += 1
+    def replay(self, seq: int, match: ViewMatch, journal_view: dict | None, votes: tuple[MeasuredVote, ...]) \
+            -> tuple[Confirmed, ...]:
+        """Rebuild the state one journaled frame left (its place, if new, its votes, its counts);
+        the keyframes are in the store already."""
+        self.places.replay(seq, match, journal_view)
+        return self._confirm(seq, votes)
+
+    def _confirm(self, seq: int, votes: tuple[MeasuredVote, ...]) -> tuple[Confirmed, ...]:
+        window = self.rule.params.window
+        for key in [key for key in self._measured if key[0] <= seq - window]:
+            del self._measured[key]
+        for vote in votes:
+            self._measured[(seq, vote.template)] = vote.measurement
+        closure = self.rule.update_votes(seq, [(v.template, v.matched_frame) for v in votes])
+        if closure is None:
+            return ()
+        run = [*closure.earlier, Vote(seq, closure.matched_frame, closure.matched_template)]
+        confirmed = tuple(Confirmed(v.frame, v.matched_frame, v.template, closure.votes, self._measured[(v.frame, v.template)])
+                          for v in run)
+        self.counts["closures"] += len(confirmed)
+        self.counts["geometry_failed"] += sum(c.measurement.method == "none" and self.mode != "none" for c in confirmed)
+        return confirmed
+
+    def _measure(self, template: int, matched_frame: int, match: ViewMatch, frame: _Frame) -> Measurement:
         if self.mode == "none":
             return Measurement("none", error="geometry off")
-        keyframe = self.keyframes.get(closure.matched_template) if self.mode == "auto" else None
-        if keyframe is not None and (camera or keyframe.camera) is not None:
-            pose = self.geometry.relative_pose(keyframe, left, camera)
+        keyframe = self.keyframes.get(template) if self.mode == "auto" else None
+        if keyframe is not None and (frame.camera or keyframe.camera) is not None:
+            pose = self.geometry.relative_pose(keyframe, frame.left, frame.camera, frame.features)
             if not pose.ok:
-                self.counts["geometry_failed"] += 1
                 return Measurement("none", inliers=pose.inliers, error=pose.reason)
             return Measurement(pose.method, pose.forward, pose.left, pose.yaw,
                                tuple(float(v) for v in pose.covariance.ravel()), pose.inliers)
-        if self.mode == "auto" and keyframe is None and camera is not None:
-            self.counts["geometry_failed"] += 1
-            return Measurement("none", error=f"no keyframe of template {closure.matched_template}")
-        # RatSLAM's model: at the matched place, turned by the templates' relative angle.
-        return Measurement("scanline", 0.0, 0.0, match.relative_angle, self.scanline_covariance)
+        if self.mode == "auto" and keyframe is None and frame.camera is not None:
+            return Measurement("none", error=f"no keyframe of template {template}")
+        # RatSLAM's model: at the matched place, turned by the views' relative angle.
+        angle = match.relative_angle if match.template_id == template else 0.0
+        return Measurement("scanline", 0.0, 0.0, angle, self.scanline_covariance)
 
     def close(self) -> None:
         self.keyframes.close()
-

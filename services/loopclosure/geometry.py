@@ -230,6 +230,19 @@ def _keypoint_bits(width: int, height: int) -> int:
 
 
 @dataclass(frozen=True, eq=False)
+class Features:
+    """A frame's ORB features: ``keypoints`` (N, 2) float32 pixels, ``descriptors`` (N, 32)
+    uint8, ``image_size`` (width, height)."""
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    image_size: tuple[int, int]
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+
+@dataclass(frozen=True, eq=False)
 class RelativePose:
     """The current frame's body pose in the keyframe's body frame, or why there is none.
 
@@ -287,7 +300,8 @@ class ClosureGeometry:
             right = grey(right)
             if right.shape != left.shape:
                 raise ConfigError(f"closure geometry: left {left.shape} and right {right.shape} images differ in size")
-            keypoints, disparity = self._stereo(left, right, keypoints)
+            chosen, disparity = self._stereo(left, right, np.array([k.pt for k in keypoints], np.float32).reshape(-1, 2))
+            keypoints, disparity = [keypoints[i] for i in chosen[:p.features]], disparity[:p.features]
         keypoints, descriptors, described = _describe(self._keyframe_orb, left, keypoints[:p.features])
         if disparity is not None:
             disparity = disparity[described]
@@ -296,40 +310,66 @@ class ClosureGeometry:
         made = Keyframe(keypoints, descriptors, disparity, camera, (width, height))
         return Keyframe.from_bytes(made.to_bytes())   # exactly what the store will give back
 
-    def _stereo(self, left: np.ndarray, right: np.ndarray, keypoints: list) -> tuple[list, np.ndarray]:
-        """The keypoints (in spread order, the first ``stereo_candidates``) that match along their
-        row in the right image, and their disparities."""
+    def _stereo(self, left: np.ndarray, right: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Which of the keypoints ``xy`` (in spread order, the first ``stereo_candidates``) match
+        along their row in the right image (indices into ``xy``), and their disparities."""
         p = self.params
-        keypoints = keypoints[:p.stereo_candidates]
-        if not keypoints:
-            return keypoints, np.empty(0, np.float32)
-        xy = np.array([k.pt for k in keypoints], dtype=np.float32)
+        xy = np.ascontiguousarray(xy[:p.stereo_candidates], dtype=np.float32)
+        if len(xy) == 0:
+            return np.empty(0, int), np.empty(0, np.float32)
         matched, good = track(left, right, xy, self._stereo_track, xy)
         disparity = xy[:, 0] - matched[:, 0]
         good &= (np.abs(xy[:, 1] - matched[:, 1]) <= p.max_row_error_px) & (disparity >= p.min_disparity_px)
         good &= disparity < 65535 * DISPARITY_STEP
         keep = np.flatnonzero(good)
-        return [keypoints[i] for i in keep], disparity[keep].astype(np.float32)
+        return keep, disparity[keep].astype(np.float32)
 
     # -- relative poses
 
-    def relative_pose(self, keyframe: Keyframe, left: np.ndarray, camera: Camera | None = None) -> RelativePose:
+    def features(self, left: np.ndarray) -> Features:
+        """The current frame's features for matching against keyframes: the first
+        ``query_features`` ORB features of its left image, spread over the grid."""
+        left = grey(left)
+        keypoints, descriptors, _ = _describe(self._query_orb, left,
+                                              _spread_keypoints(self._query_orb, left, self.params.grid)[:self.params.query_features])
+        return Features(keypoints, descriptors, (left.shape[1], left.shape[0]))
+
+    def verify(self, keyframe: Keyframe, features: Features) -> int:
+        """How many of the frame's features match the keyframe's consistently with one rigid
+        motion of a camera between two views of a scene: the inliers of a fundamental matrix
+        fitted by RANSAC (``ransac_px``) to the matches that pass the ratio test. It needs no
+        calibration; two views of different places leave only chance inliers (around ten)."""
+        if len(keyframe) < 8 or len(features) < 8 or tuple(keyframe.image_size) != features.image_size:
+            return 0
+        first, second = self._match(keyframe.descriptors, features.descriptors, np.ones(len(keyframe), bool))
+        if len(first) < 8:
+            return 0
+        try:
+            F, inliers = cv2.findFundamentalMat(keyframe.keypoints[first], features.keypoints[second], cv2.FM_RANSAC,
+                                                self.params.ransac_px, 0.99, self.params.ransac_iterations)
+        except cv2.error:
+            return 0
+        return 0 if F is None or inliers is None else int(np.count_nonzero(inliers))
+
+    def relative_pose(self, keyframe: Keyframe, left: np.ndarray, camera: Camera | None = None,
+                      features: Features | None = None) -> RelativePose:
         """The pose of the frame whose left image is ``left`` relative to ``keyframe`` (stereo
-        when the keyframe has 3D points, else mono); ``camera`` defaults to the keyframe's."""
+        when the keyframe has 3D points, else mono); ``camera`` defaults to the keyframe's;
+        ``features``: the frame's, when already found (``features(left)``)."""
         p = self.params
         stereo = keyframe.points is not None
         method = "stereo" if stereo else "mono"
         camera = camera or keyframe.camera
         if camera is None:
             return _failure(method, "no camera calibration")
-        left = grey(left)
-        if (left.shape[1], left.shape[0]) != tuple(keyframe.image_size):
-            return _failure(method, f"image size {left.shape[1]}×{left.shape[0]} differs from the keyframe's "
-                                    f"{keyframe.image_size[0]}×{keyframe.image_size[1]}")
+        features = features or self.features(left)
+        if features.image_size != tuple(keyframe.image_size):
+            return _failure(method, f"image size {features.image_size[0]}×{features.image_size[1]} differs from the "
+                                    f"keyframe's {keyframe.image_size[0]}×{keyframe.image_size[1]}")
         usable = keyframe.depth_count if stereo else len(keyframe)
         if usable < p.min_inliers:
             return _failure(method, f"keyframe has too few features ({usable} < {p.min_inliers})")
-        keypoints, descriptors, _ = _describe(self._query_orb, left, _spread_keypoints(self._query_orb, left, p.grid)[:p.query_features])
+        keypoints, descriptors = features.keypoints, features.descriptors
         if len(keypoints) < p.min_inliers:
             return _failure(method, f"too few features ({len(keypoints)} < {p.min_inliers})")
         usable = np.isfinite(keyframe.disparity) if stereo else np.ones(len(keyframe), bool)

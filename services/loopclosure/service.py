@@ -4,7 +4,6 @@ relative pose of each confirmed closure measured from the images (detector.py)."
 from __future__ import annotations
 
 import argparse
-import base64
 import collections
 import dataclasses
 import logging
@@ -12,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from schemas import CameraFrame, LoopClosure, PlanarIncrement, ViewTemplate
 from services.common.config import load_config
@@ -21,21 +20,28 @@ from services.common.errors import ConfigError
 from services.common.journal import Journal
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.loopclosure.consistency import Closure, ConsistencyParams
-from services.loopclosure.detector import LoopClosureDetector, Measurement
+from services.common.settings import config_fields, params_of
+from services.loopclosure.bow import BowParams
+from services.loopclosure.consistency import ConsistencyParams
+from services.loopclosure.detector import Confirmed, LoopClosureDetector, MeasuredVote, Measurement
 from services.loopclosure.geometry import GeometryParams
 from services.loopclosure.keyframes import KeyframeStore
+from services.loopclosure.places import PLACE_RECOGNITIONS
+from services.loopclosure.sequence import SequenceParams
 from services.loopclosure.templates import TemplateParams, ViewMatch
 from services.source.frames import Camera
 
 log = logging.getLogger(__name__)
 
 
-class LoopClosureConfig(BaseModel):
+class _LoopClosureFields(BaseModel):
     """Configuration of the loopclosure service (table `[loopclosure]`, env `GRIDSLAM_LOOPCLOSURE_*`, presets)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
+    place_recognition: Literal[PLACE_RECOGNITIONS] = Field(
+        "bow", description="How a frame's place is recognised: scanline (RatSLAM's view templates, the paper's model), "
+                           "bow (a bag of binary words, verified geometrically) or sequence (SeqSLAM).")
     crop: tuple[float, float, float, float] = Field((0.0, 1.0, 0.0, 1.0), description="Crop x0, x1, y0, y1 as fractions of the image.")
     width: int = Field(60, ge=4, description="Template columns.")
     height: int = Field(10, ge=1, description="Template rows.")
@@ -71,6 +77,15 @@ class LoopClosureConfig(BaseModel):
                               shift_range=self.shift_range, match_threshold=self.match_threshold, fov_deg=self.fov_deg,
                               matcher=self.matcher, candidates=self.candidates, index_rows=self.index_rows)
 
+    def place_params(self):
+        """The chosen place recogniser's parameters."""
+        if self.place_recognition == "scanline":
+            return self.template_params()
+        params = params_of(BowParams, self, "bow_") if self.place_recognition == "bow" else \
+            params_of(SequenceParams, self, "sequence_")
+        params.check()
+        return params
+
     def consistency_params(self) -> ConsistencyParams:
         return ConsistencyParams(window=self.window, min_votes=self.min_votes, tolerance=self.tolerance,
                                  recent_frames=self.recent_frames)
@@ -87,8 +102,13 @@ class LoopClosureConfig(BaseModel):
 
     def detector(self, keyframes=None) -> LoopClosureDetector:
         mode = "none" if self.closure == "ratslam" else self.geometry
-        return LoopClosureDetector(self.template_params(), self.consistency_params(), self.geometry_parameters(), mode,
-                                   self.scanline_translation_sigma, self.scanline_heading_sigma, keyframes)
+        return LoopClosureDetector(self.place_params(), self.consistency_params(), self.geometry_parameters(), mode,
+                                   self.scanline_translation_sigma, self.scanline_heading_sigma, keyframes,
+                                   self.place_recognition)
+
+
+LoopClosureConfig = create_model("LoopClosureConfig", __base__=_LoopClosureFields, __doc__=_LoopClosureFields.__doc__,
+                                 **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"))
 
 
 def camera_of(message: CameraFrame, image: np.ndarray) -> Camera | None:
@@ -99,9 +119,21 @@ def camera_of(message: CameraFrame, image: np.ndarray) -> Camera | None:
                   width=image.shape[1], height=image.shape[0])
 
 
+JOURNAL_FORMAT = "gridslam-view-templates"
+JOURNAL_VERSION = 3   # 3: place recognitions, votes measured as they are made
+
+
+def _measurement_record(measurement: Measurement) -> dict:
+    return dataclasses.asdict(measurement)
+
+
+def _measurement_of(record: dict) -> Measurement:
+    return Measurement(**{**record, "covariance": tuple(record["covariance"])})
+
+
 class LoopClosureService(Service):
     name = "loopclosure"
-    exclusive = True   # templates and the closure votes run through every frame
+    exclusive = True   # the places and the closure votes run through every frame
 
     def __init__(self, runtime: RuntimeConfig, config: LoopClosureConfig, instance: str | None = None):
         super().__init__(runtime, instance)
@@ -111,20 +143,22 @@ class LoopClosureService(Service):
             keyframes = KeyframeStore(config.store.with_suffix(".keyframes"), int(config.keyframe_store_mb * 2**20))
         self.detector = config.detector(keyframes)
         # Frames already handled (from the journal after a restart), to answer a re-sent frame again.
-        self.recent: collections.OrderedDict[int, tuple[ViewMatch, Closure | None, Measurement | None]] = \
-            collections.OrderedDict()
+        self.recent: collections.OrderedDict[int, tuple[ViewMatch, tuple[Confirmed, ...]]] = collections.OrderedDict()
         self.last_frame: int | None = None
         self.journal = None
         if config.store is not None:
             params = config.model_dump(mode="json", exclude={"store", "keyframe_store_mb"})
-            self.journal = Journal(config.store, {"format": "gridslam-view-templates", "version": 2, "params": params})
+            vocabulary = getattr(self.detector.places, "vocabulary_id", None)
+            header = {"format": JOURNAL_FORMAT, "version": JOURNAL_VERSION, "params": params,
+                      **({"vocabulary": vocabulary} if vocabulary else {})}
+            self.journal = Journal(config.store, header)
             for record in self.journal.records:
                 self._replay(record)
             # A keyframe written just before a crash, whose frame the journal does not hold, is dropped.
-            self.detector.keyframes.truncate(len(self.detector.templates))
+            self.detector.keyframes.truncate(len(self.detector.places))
             if self.journal.records:
-                log.info("loopclosure resumed from %s: %d frames, %d templates", config.store,
-                         len(self.journal.records), len(self.detector.templates))
+                log.info("loopclosure resumed from %s: %d frames, %d places", config.store,
+                         len(self.journal.records), len(self.detector.places))
 
     def setup(self) -> None:
         self.subscribe("camera/frame", self.on_frame)
@@ -143,23 +177,25 @@ class LoopClosureService(Service):
         left = image_from_msg(message.left)
         right = image_from_msg(message.right) if message.right is not None else None
         observed = self.detector.observe(seq, left, right, camera_of(message, left))
-        match, closure, measurement = observed.match, observed.closure, observed.measurement
-        if closure is not None:
-            log.info("loop closure confirmed at frame %d: frame %d (template %d), %d votes, measurement %s%s", seq,
-                     closure.matched_frame, closure.matched_template, closure.votes, measurement.method,
-                     f" ({measurement.error})" if measurement.error else "")
-        self._publish(message.header, match, closure, measurement)
+        for closure in observed.closures:
+            m = closure.measurement
+            log.info("loop closure confirmed at frame %d: frame %d ↔ frame %d (place %d), %d votes, measurement %s%s", seq,
+                     closure.frame, closure.matched_frame, closure.matched_template, closure.votes, m.method,
+                     f" ({m.error})" if m.error else "")
+        self._publish(message.header, observed.match, observed.closures)
         # Journaled after publishing: a crash in between re-handles the frame, never loses it.
         if self.journal is not None:
-            patch = self.detector.templates.patch(match.template_id) if match.is_new else None
+            match = observed.match
             self.journal.append({"frame": seq, "template": match.template_id, "new": match.is_new,
-                                 "distance": match.distance, "angle": match.relative_angle, "matched_frame": match.matched_frame,
-                                 "shift": match.shift, "patch": base64.b64encode(patch.tobytes()).decode() if patch is not None else None,
-                                 "measurement": dataclasses.asdict(measurement) if measurement is not None else None})
-        self._remember(seq, match, closure, measurement)
+                                 "distance": match.distance, "angle": match.relative_angle,
+                                 "matched_frame": match.matched_frame, "shift": match.shift, "view": observed.journal_view,
+                                 "votes": [[v.template, v.matched_frame, _measurement_record(v.measurement)]
+                                           for v in observed.votes]})
+        self._remember(seq, observed.match, observed.closures)
 
-    def _publish(self, header, match: ViewMatch, closure: Closure | None, measurement: Measurement | None) -> None:
-        if closure is not None:
+    def _publish(self, header, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:
+        for closure in closures:
+            measurement = closure.measurement
             measured = measurement.method != "none"
             self.publish("loop/closure", LoopClosure(
                 header=header, frame=closure.frame, matched_frame=closure.matched_frame,
@@ -170,32 +206,34 @@ class LoopClosureService(Service):
         self.publish("view/template", ViewTemplate(
             header=header, template_id=match.template_id, is_new=match.is_new, distance=match.distance,
             relative_angle=match.relative_angle, matched_frame=match.matched_frame,
-            template_count=len(self.detector.templates), loop_closure=closure is not None))
+            template_count=len(self.detector.places), loop_closure=bool(closures), loop_closures=len(closures)))
 
     def _replay(self, record: dict) -> None:
-        """Rebuild the templates and the consistency window from one journal record."""
-        patch = None
-        if record["new"]:
-            shape = (self.config.height, self.config.width)
-            patch = np.frombuffer(base64.b64decode(record["patch"]), dtype=np.float32).reshape(shape)
+        """Rebuild the places and the consistency window from one journal record."""
         match = ViewMatch(record["template"], record["new"], record["distance"], record["angle"], record["matched_frame"],
                           record["shift"])
-        measurement = record["measurement"]
-        if measurement is not None:
-            measurement = Measurement(**{**measurement, "covariance": tuple(measurement["covariance"])})
-        closure = self.detector.replay(record["frame"], match, patch, measurement)
-        self._remember(record["frame"], match, closure, measurement)
+        votes = tuple(MeasuredVote(template, matched, _measurement_of(measurement))
+                      for template, matched, measurement in record["votes"])
+        closures = self.detector.replay(record["frame"], match, record["view"], votes)
+        self._remember(record["frame"], match, closures)
 
-    def _remember(self, frame: int, match: ViewMatch, closure: Closure | None, measurement: Measurement | None) -> None:
+    def _remember(self, frame: int, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:
         self.last_frame = frame
-        self.recent[frame] = (match, closure, measurement)
+        self.recent[frame] = (match, closures)
         while len(self.recent) > REPLAY_FRAMES:
             self.recent.popitem(last=False)
 
     def extra_counters(self) -> dict[str, float]:
         counts = self.detector.counts
-        return {**super().extra_counters(), "templates": len(self.detector.templates), "loop_closures": counts["closures"],
+        return {**super().extra_counters(), "templates": len(self.detector.places), "loop_closures": counts["closures"],
                 "closure_geometry_failed": counts["geometry_failed"]}
+
+
+def add_place_recognition_argument(parser: argparse.ArgumentParser) -> None:
+    """--place-recognition, shared by every command that runs the loop closure (run, demo, map build, the service)."""
+    field = _LoopClosureFields.model_fields["place_recognition"]
+    parser.add_argument("--place-recognition", choices=PLACE_RECOGNITIONS,
+                        help=f"{field.description} (default {field.default})")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -204,10 +242,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", type=Path, help="journal of templates; a restart resumes from it")
     parser.add_argument("--closure", choices=["metric", "ratslam"],
                         help="measure each closure's relative pose (metric, default) or not (ratslam: the map snaps)")
+    add_place_recognition_argument(parser)
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(LoopClosureConfig, "loopclosure", preset=args.preset, config_file=args.config,
-                         overrides={"match_threshold": args.match_threshold, "store": args.store, "closure": args.closure})
+                         overrides={"match_threshold": args.match_threshold, "store": args.store, "closure": args.closure,
+                                    "place_recognition": args.place_recognition})
     config.geometry_parameters()   # a bad key fails at start, with one line
+    config.place_params()
     return LoopClosureService(runtime, config, args.instance).run()

@@ -81,6 +81,7 @@ class ViewMatch:
     relative_angle: float     # radians, from the best shift (positive: the view turned left)
     matched_frame: int        # frame at which the template was stored
     shift: int                # best column shift
+    nearest_frame: int = -1   # frame of the closest stored template, also when the view became a new one (-1: none)
 
 
 class ViewTemplates:
@@ -126,15 +127,16 @@ class ViewTemplates:
     def observe(self, image: np.ndarray, frame: int) -> ViewMatch:
         """Match the frame's view against every stored template; store it when none is close."""
         patch = self.template_of(image)
+        nearest = -1
         if self.frames:
             template_id, distance, shift = self.best_match(patch)
+            nearest = self.frames[template_id]
             if distance <= self.params.match_threshold:
-                return ViewMatch(template_id, False, distance, shift * self.radians_per_column,
-                                 self.frames[template_id], shift)
+                return ViewMatch(template_id, False, distance, shift * self.radians_per_column, nearest, shift, nearest)
         else:
             distance = 0.0
         template_id = self.add(patch, frame)
-        return ViewMatch(template_id, True, distance, 0.0, frame, 0)
+        return ViewMatch(template_id, True, distance, 0.0, frame, 0, nearest)
 
     def best_match(self, patch: np.ndarray) -> tuple[int, float, int]:
         """(template id, distance, shift) of the stored template closest to `patch`."""

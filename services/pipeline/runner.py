@@ -30,6 +30,7 @@ from services.egomotion import ESTIMATORS
 from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
+from services.loopclosure.places import PLACE_RECOGNITIONS
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
@@ -98,6 +99,9 @@ class RunConfig(BaseModel):
                           "default: the services' (metric).")
     map_optimizer: Literal["gtsam", "ratslam"] | None = Field(
         None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
+    place_recognition: Literal[PLACE_RECOGNITIONS] | None = Field(
+        None, description="How loop closure recognises places: scanline, bow or sequence; default: the loopclosure's "
+                          "(its preset's, or bow).")
     view: str | None = Field(None, description="Also run the viewer, serving HTTP on this host:port.")
     stall_timeout: float = Field(60.0, gt=0, description="Fail when no frame completes for this many seconds.")
     world: dict[str, int | float | bool | str] = Field(
@@ -309,6 +313,7 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--port", str(config.foxglove)]
     if name == "loopclosure":
         args += ["--store", str(folder / TEMPLATE_LOG)]
+        args += ["--place-recognition", config.place_recognition] if config.place_recognition else []
     if name == "expmap":
         args += ["--store", str(folder / MAP_LOG), "--out", str(folder)]
         args += ["--map-optimizer", config.map_optimizer] if config.map_optimizer else []

@@ -1,0 +1,80 @@
+"""Settings declared once. A core's parameters are a frozen dataclass whose fields are made with
+`setting(default, help=..., bounds or choices)`; the pydantic config model of the service that
+runs the core (its TOML table, environment variables and validation) is derived from that
+declaration (`config_fields`), and so are command-line flags (`add_flag`), so a setting's name,
+type, default, help and allowed values are written in one place. The cores import only this
+module's `setting`, which needs nothing but the standard library.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from typing import Any, Literal
+
+from services.common.errors import ConfigError
+
+_BOUNDS = ("ge", "gt", "le", "lt")
+
+
+def setting(default: Any, *, help: str, choices: tuple[str, ...] | None = None, ge: float | None = None,
+            gt: float | None = None, le: float | None = None, lt: float | None = None) -> Any:
+    """A dataclass field with its documentation and its allowed values."""
+    metadata = {"help": help, "choices": choices, "ge": ge, "gt": gt, "le": le, "lt": lt}
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def declared(params_type: type) -> list[tuple[dataclasses.Field, Any]]:
+    """(field, resolved type) of every field of a parameters dataclass."""
+    hints = typing.get_type_hints(params_type)
+    return [(f, hints[f.name]) for f in dataclasses.fields(params_type)]
+
+
+_COMPARE = {"ge": lambda v, b: v >= b, "gt": lambda v, b: v > b, "le": lambda v, b: v <= b, "lt": lambda v, b: v < b}
+
+
+def check(params) -> None:
+    """Raise ConfigError naming the first field of ``params`` outside its declared bounds or
+    choices (``LABEL`` of the dataclass, if any, leads the message)."""
+    kind = getattr(type(params), "LABEL", type(params).__name__)
+    for f, _ in declared(type(params)):
+        value, meta = getattr(params, f.name), f.metadata
+        choices = meta.get("choices")
+        ok = value in choices if choices else all(_COMPARE[bound](value, meta[bound]) for bound in _BOUNDS
+                                                  if meta.get(bound) is not None)
+        if not ok:
+            raise ConfigError(f"{kind}: invalid {f.name} = {value!r}")
+
+
+def config_fields(params_type: type, prefix: str = "") -> dict[str, tuple[Any, Any]]:
+    """pydantic.create_model field definitions for every setting of ``params_type``, named
+    ``prefix + name``, with its default, description and bounds."""
+    from pydantic import Field
+
+    fields = {}
+    for f, annotation in declared(params_type):
+        meta = f.metadata
+        if meta.get("choices"):
+            annotation = Literal[meta["choices"]]
+        bounds = {bound: meta[bound] for bound in _BOUNDS if meta.get(bound) is not None}
+        fields[prefix + f.name] = (annotation, Field(f.default, description=meta.get("help", ""), **bounds))
+    return fields
+
+
+def params_of(params_type: type, values, prefix: str = ""):
+    """The ``params_type`` whose fields a config model (or mapping) holds under ``prefix``."""
+    get = values.get if isinstance(values, dict) else lambda name: getattr(values, name)
+    return params_type(**{f.name: get(prefix + f.name) for f in dataclasses.fields(params_type)})
+
+
+def add_flag(parser, params_type: type, name: str, *, prefix: str = "", flag: str | None = None, **extra) -> None:
+    """An argparse flag for one declared setting (default None: "not given"), its type, choices
+    and help from the declaration."""
+    f, annotation = next((f, a) for f, a in declared(params_type) if f.name == name)
+    meta = f.metadata
+    kwargs: dict[str, Any] = {"help": f"{meta.get('help', '')} (default {f.default})"}
+    if meta.get("choices"):
+        kwargs["choices"] = list(meta["choices"])
+    elif annotation in (int, float):
+        kwargs["type"] = annotation
+    parser.add_argument(flag or "--" + (prefix + name).replace("_", "-"), dest=prefix + name, **{**kwargs, **extra})
