@@ -11,6 +11,7 @@ from services.common.config import load_config
 from services.common.runtime import DEFAULT_ROUTER
 from services.expmap.service import add_map_arguments
 from services.loopclosure.service import add_place_recognition_argument
+from services.source.service import add_fov_argument
 from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
 
 
@@ -27,6 +28,9 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--preset", help="dataset preset: synthetic, campus, nubot, kitti, stlucia, or a preset file "
                                          "(base preset and per-service tables, docs/sources.md)")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file for the source")
+    add_fov_argument(parser)
+    parser.add_argument("--camera-height", type=float, metavar="M",
+                        help="camera height above the ground, m: a metric scale for the mono estimator (ground plane)")
     parser.add_argument("-c", "--config", type=Path, help="gridslam TOML config file for every service")
     parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
     parser.add_argument("--overwrite", action="store_true",
@@ -110,7 +114,7 @@ def run_flags(args) -> dict:
     return {"source": args.source, "egomotion": args.egomotion, "egomotion_instances": args.egomotion_instances,
             "integrator": args.integrator, "decoder": args.decoder, "step_source": sources[-1] if sources else None,
             "modules": args.modules, "heading": args.heading,
-            "preset": args.preset, "calibration": args.calibration, "config_file": args.config, "n_frames": args.n_frames,
+            "preset": args.preset, "calibration": args.calibration, "fov": args.fov, "camera_height": args.camera_height, "config_file": args.config, "n_frames": args.n_frames,
             "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
             "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,
             "map_optimizer": args.map_optimizer, "place_recognition": args.place_recognition, "world": parse_world_flags(args.world, args.laps) or None,
@@ -126,7 +130,8 @@ def execute(args, **defaults) -> int:
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args))
     progress = Progress()
     try:
-        result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite)
+        result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite,
+                              announce=lambda line: print(line, file=sys.stderr, flush=True))
     finally:
         progress.close()
     print(format_table(summary_rows(result.metrics)))

@@ -123,6 +123,34 @@ def load_estimator_config(
     return default, params
 
 
+def resolve_estimator(estimator: str | None = None, preset: str | None = None, config_file: str | Path | None = None,
+                      camera_height: float | None = None, environ=None) -> tuple[str, dict[str, Any]]:
+    """The estimator a run uses and its parameters: the preset < the config file's [egomotion]
+    table (`estimator = "..."` and one sub-table per estimator) < GRIDSLAM_EGOMOTION_ESTIMATOR <
+    ``estimator``; scanline when none names one. ``camera_height`` (m) sets mono's
+    camera_height_m. The one resolution for the egomotion service and the runner."""
+    import os
+
+    from services.common.config import read_toml
+    from services.common.errors import ConfigError
+
+    environ = os.environ if environ is None else environ
+    default, params = load_estimator_config(preset)
+    table = read_toml(Path(config_file)).get("egomotion", {}) if config_file else {}
+    for name, values in table.items():
+        if name in ESTIMATORS:
+            params[name].update(values)
+        elif name not in ("estimator", "shard_block"):
+            raise ConfigError(f"{config_file}: [egomotion] unknown key {name!r}")
+    if camera_height is not None:
+        params["mono"]["camera_height_m"] = camera_height
+    name = estimator or environ.get("GRIDSLAM_EGOMOTION_ESTIMATOR") or table.get("estimator") or default or "scanline"
+    if name not in ESTIMATORS:
+        raise ConfigError(f"unknown estimator {name!r} (available: {', '.join(ESTIMATORS)})")
+    params_from_dict(ESTIMATORS[name][1], params[name], where=f"{name} parameters")   # fail at start, not at frame 1
+    return name, params[name]
+
+
 __all__ = [
     "ESTIMATORS",
     "EgomotionError",
@@ -135,5 +163,6 @@ __all__ = [
     "make_estimator",
     "preset_names",
     "read_config_file",
+    "resolve_estimator",
     "transform_from_increment",
 ]

@@ -28,7 +28,7 @@ from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.errors import ConfigError
-from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator
+from services.egomotion import ESTIMATORS, make_estimator, resolve_estimator
 from services.egomotion.base import params_from_dict
 from services.egomotion.shards import BLOCK as SHARD_BLOCK, BlockEstimation, FrameHistory, block_owner, default_block
 from services.source.frames import Camera, Frame
@@ -146,25 +146,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="ego-motion estimator (default: the preset's, else scanline)")
     parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic, campus, "
                                          "or a preset file")
+    parser.add_argument("--camera-height", type=float, metavar="M",
+                        help="camera height above the ground, m (the mono estimator's camera_height_m: a metric scale)")
     parser.add_argument("--shard-block", type=int, help=f"frames per block of the shared estimation (default {SHARD_BLOCK}, "
                                                         "mono 16; every instance of a robot must use the same)")
 
 
 def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
-    """Estimator name and parameters from the preset < the --config file's [egomotion] table
-    (`estimator = "..."` and one sub-table per estimator) < GRIDSLAM_EGOMOTION_ESTIMATOR < --estimator."""
-    default, params = load_estimator_config(args.preset)
-    table = read_toml(args.config).get("egomotion", {}) if args.config else {}
-    for estimator, values in table.items():
-        if estimator in ESTIMATORS:
-            params[estimator].update(values)
-        elif estimator not in ("estimator", "shard_block"):
-            raise ConfigError(f"{args.config}: [egomotion] unknown key {estimator!r}")
-    name = args.estimator or os.environ.get("GRIDSLAM_EGOMOTION_ESTIMATOR") or table.get("estimator") or default or "scanline"
-    if name not in ESTIMATORS:
-        raise ConfigError(f"unknown estimator {name!r} (available: {', '.join(ESTIMATORS)})")
-    params_from_dict(ESTIMATORS[name][1], params[name], where=f"{name} parameters")   # fail at start, not at frame 1
-    return name, params[name]
+    """Estimator name and parameters (services.egomotion.resolve_estimator) from the flags."""
+    return resolve_estimator(args.estimator, args.preset, args.config, getattr(args, "camera_height", None))
 
 
 def shard_block_setting(args: argparse.Namespace, estimator_name: str) -> int:

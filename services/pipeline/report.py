@@ -104,6 +104,7 @@ def evaluate(recording: Recording, statuses: dict[str, dict], restarts: dict[str
     summary = {
         "frames_expected": frames_expected,
         "frames_sent": len(sent),
+        "frames_unreadable": int(statuses.get("source", {}).get("extra", {}).get("frames_unreadable", 0)),
         "wall_time_s": wall_time_s,
         "loop_closures": [dict(zip(("frame", "matched_frame", "matched_template", "votes"), c))
                           for _, c in sorted(recording.closures.items())],
@@ -183,6 +184,8 @@ def summary_rows(result: dict) -> list[tuple[str, object, str]]:
     summary = result["summary"]
     rows: list[tuple[str, object, str]] = [
         ("frames sent", summary["frames_sent"], "frames"),
+        *([("frames unreadable, skipped", summary["frames_unreadable"], "frames (logs/source.log names them)")]
+          if summary.get("frames_unreadable") else []),
         ("wall time", summary["wall_time_s"], "s"),
         ("ground-truth path", summary["groundtruth_path_length_m"], "m"),
         ("view templates", summary["view_templates"], ""),

@@ -31,6 +31,7 @@ from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
 from services.expmap.export import corrected_trajectory, read_log
 from services.loopclosure.places import PLACE_RECOGNITIONS
+from services.pipeline.assumptions import assess
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
@@ -59,6 +60,9 @@ GRID_CHECKPOINT = "gridcells.checkpoint.npz"
 RUN_STATE_PATTERNS = ("experience_map.*", "view_templates.*", "gridcells.checkpoint*", "logs/*.log")
 
 
+ASSUMED = "assumed"   # config.json's entry of what the run assumed (assumptions.py), beside RunConfig's fields
+
+
 class RunError(GridslamError):
     """The run could not start or complete (the message says which service and where its log is)."""
 
@@ -81,6 +85,10 @@ class RunConfig(BaseModel):
         None, description="Dataset preset passed to every service that has one, or a preset file (base preset and "
                           "per-service tables, docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file for the source (overrides the preset's).")
+    fov: float | None = Field(None, gt=0, lt=180, description="Horizontal field of view (degrees) of the camera assumed for "
+                                                              "an image folder, video or camera without a calibration.")
+    camera_height: float | None = Field(
+        None, gt=0, description="Height of the camera above the ground, m: the mono estimator's metric scale (ground plane).")
     config_file: Path | None = Field(None, description="gridslam TOML config file passed to every service.")
     n_frames: int | None = Field(None, ge=1, description="Process only this many frames.")
     start: int = Field(0, ge=0, description="First frame index.")
@@ -301,6 +309,8 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--preset", config.preset]
     if name == "egomotion" and config.egomotion:
         args += ["--estimator", config.egomotion]
+    if name == "egomotion" and config.camera_height:
+        args += ["--camera-height", str(config.camera_height)]
     if name == "gridcells":
         args += ["--integrator", config.integrator, "--checkpoint", str(folder / GRID_CHECKPOINT)]
         args += ["--decoder", config.decoder] if config.decoder else []
@@ -337,6 +347,8 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
         args += ["--preset", config.preset]
     if config.calibration is not None:
         args += ["--calibration", str(config.calibration)]
+    if config.fov is not None:
+        args += ["--fov", str(config.fov)]
     for key, value in config.world.items():
         args += ["--world", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
     for key, value in bag_settings(config).items():
@@ -348,7 +360,8 @@ def source_settings(config: RunConfig) -> SourceConfig:
     """The source's settings as its service will resolve them: the config file's [source] under
     the run's flags."""
     return load_config(SourceConfig, "source", config_file=config.config_file, overrides={
-        "source": config.source, "preset": config.preset, "calibration": config.calibration, **config.world,
+        "source": config.source, "preset": config.preset, "calibration": config.calibration, "fov": config.fov,
+        **config.world,
         **bag_settings(config)})
 
 
@@ -371,10 +384,13 @@ class RunResult:
 
 
 def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop_event: threading.Event | None = None,
-                 overwrite: bool = False) -> RunResult:
+                 overwrite: bool = False, announce=None) -> RunResult:
     """Run the whole stack on `config.source`, write the results folder, return its metrics.
 
-    `progress(done, total)` is called about five times a second; `stop_event` ends the run early.
+    `progress(done, total)` is called about five times a second; `stop_event` ends the run early;
+    `announce(line)` is given the lines saying what the run assumes (estimator, camera, scale)
+    before it starts. A run whose estimator cannot work on its source fails before anything
+    starts (assumptions.StageInputError).
     A folder that holds an earlier run is refused, or cleared first with `overwrite`: its
     services would resume that run's state instead of starting afresh."""
     stop_event = stop_event or threading.Event()
@@ -389,11 +405,15 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     log_preset(config, ["source", *dict.fromkeys(child.partition("-")[0] for child in stages)])
     settings = source_settings(config)
     frames = open_source(config.source, start=config.start, stop=stop, step=config.step, preset=settings.preset,
-                         calibration=settings.calibration, world=settings.world(), topics=bag_settings(settings))
+                         calibration=settings.calibration, world=settings.world(), topics=bag_settings(settings),
+                         fov=settings.fov)
     total = None if getattr(frames, "live", False) else len(frames)
+    assumed = assess(config.egomotion, config.preset, config.config_file, config.camera_height, config.source, frames)
+    for line in assumed.lines():
+        (announce or log.info)(line)
     folder = results_dir(out)
     clear_previous_run(folder, overwrite)
-    write_config(folder / "config.json", config)
+    write_config(folder / "config.json", {**config.model_dump(mode="json"), ASSUMED: assumed.record()})
     (folder / "logs").mkdir(exist_ok=True)
     ack_topic = "map/pose" if config.mapping else "grid/pose"
     supervisor = Supervisor(folder / "logs")

@@ -241,11 +241,11 @@ def _source_images(config: dict):
     when it cannot be read."""
     from pydantic import ValidationError
 
-    from services.pipeline.runner import RunConfig
+    from services.pipeline.runner import ASSUMED, RunConfig
     from services.source.spec import bag_settings, open_source
 
     try:
-        run = RunConfig.model_validate(config)
+        run = RunConfig.model_validate({key: value for key, value in config.items() if key != ASSUMED})
     except ValidationError as error:
         log.warning("camera images left out: config.json is not a run's configuration (%s)",
                     str(error).splitlines()[0])
@@ -256,7 +256,7 @@ def _source_images(config: dict):
     stop = run.start + run.n_frames * run.step if run.n_frames else None
     try:
         frames = open_source(run.source, start=run.start, stop=stop, step=run.step, preset=run.preset,
-                             calibration=run.calibration, mono=True, topics=bag_settings(run))
+                             calibration=run.calibration, mono=True, topics=bag_settings(run), fov=run.fov)
     except GridslamError as error:   # a moved dataset: the export goes on without images
         log.warning("camera images left out: the run's source %s cannot be read again (%s)", run.source, error)
         return (), None

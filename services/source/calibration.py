@@ -25,9 +25,24 @@ import numpy as np
 
 from services.source.frames import Camera, SourceError
 
+# A monocular image folder, video or camera without a calibration gets a pinhole camera with this
+# horizontal field of view (`--fov`, source key `fov`): about a phone's main camera or a webcam
+# (60–78°; KITTI's grey cameras: 82°). The mono estimator and the closure geometry then work; the
+# run says the camera was assumed.
+DEFAULT_FOV_DEG = 65.0
+
 REQUIRED_KEYS = ("fx", "fy", "cx", "cy")
 OPTIONAL_KEYS = ("baseline", "width", "height")
 CALIBRATION_KEYS = REQUIRED_KEYS + OPTIONAL_KEYS
+
+
+def assumed_camera(width: int, height: int, fov_deg: float = DEFAULT_FOV_DEG) -> Camera:
+    """A pinhole camera for ``width``×``height`` images with a horizontal field of view of
+    ``fov_deg``: square pixels, the principal point at the image centre, no distortion."""
+    if not 0 < fov_deg < 180:
+        raise SourceError(f"field of view {fov_deg:g}° is not between 0 and 180°")
+    focal = (width / 2) / math.tan(math.radians(fov_deg) / 2)
+    return Camera(fx=focal, fy=focal, cx=(width - 1) / 2, cy=(height - 1) / 2, baseline=0.0, width=width, height=height)
 
 
 def camera_from_mapping(values: Mapping[str, Any], where: str) -> Camera:

@@ -79,6 +79,7 @@ class LiveCamera:
             self.close()
             raise SourceError(f"camera {device}: frames are {width}×{height} but the calibration is for {camera.width}×{camera.height}")
         self.camera = dataclasses.replace(camera, width=width, height=height) if camera is not None else None
+        self.image_size = (width, height)
 
     @property
     def frames_grabbed(self) -> int:

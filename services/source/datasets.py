@@ -91,6 +91,7 @@ class IndexedSource:
         if not self._seqs:
             raise SourceError(f"{name}: start={start} stop={stop} step={step} selects none of its {len(seqs)} frames")
         self._size: tuple[int, int] | None = None  # (height, width) of every image, from the first frame
+        self.unreadable: list[tuple[int, str]] = []   # frames iteration skipped: (seq, why)
         first = self._read(self._seqs[0])
         height, width = first.left.shape[:2]
         if camera is not None and camera.width and (camera.width, camera.height) != (width, height):
@@ -100,6 +101,11 @@ class IndexedSource:
         self._size = (height, width)
         if camera is not None and not camera.width:
             self.camera = dataclasses.replace(camera, width=width, height=height)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height) of the images, from the first frame."""
+        return self._size[1], self._size[0]
 
     @property
     def seqs(self) -> tuple[int, ...]:
@@ -121,9 +127,13 @@ class IndexedSource:
             try:
                 frame = self._read(seq)
             except SourceError as error:
-                log.warning("frame %d skipped: %s", seq, error)
+                self._skipped(seq, error)
                 continue
             yield frame
+
+    def _skipped(self, seq: int, error: SourceError) -> None:
+        log.warning("frame %d skipped: %s", seq, error)
+        self.unreadable.append((seq, str(error)))
 
     def close(self) -> None:
         """Release what the source holds open (nothing for image files)."""
@@ -406,7 +416,7 @@ class VideoFile(IndexedSource):
                 frame = self._decode(seq)
             except SourceError as error:
                 failures += 1
-                log.warning("frame %d skipped: %s", seq, error)
+                self._skipped(seq, error)
                 if failures >= self.MAX_FAILURES_IN_A_ROW:
                     log.warning("%s: stopped after %d undecodable frames in a row (the stream ended early)", self._path, failures)
                     return

@@ -44,6 +44,7 @@ from services.common.health import live_services, statuses
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.topics import TOPICS
+from services.source.calibration import DEFAULT_FOV_DEG
 from services.source.frames import Frame, FrameSource, planar_motion
 from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
                                   parse_world_flags, world_keys)
@@ -71,6 +72,10 @@ class _SourceSettings(BaseModel):
     preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic, campus, "
                                                   "irat, or a preset file (docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
+    fov: float | None = Field(
+        None, gt=0, lt=180, description=f"Horizontal field of view, degrees, of the pinhole camera assumed for an image folder, "
+                                        f"video or live camera without a calibration (default: the preset's, else "
+                                        f"{DEFAULT_FOV_DEG:g}).")
     mono: bool = Field(False, description="Publish only the left image of a stereo source.")
     start: int = Field(0, ge=0, description="First frame index.")
     origin: int | None = Field(
@@ -357,7 +362,8 @@ class SourceService(Service):
         self.last_progress = time.monotonic()
 
     def extra_counters(self) -> dict[str, float]:
-        extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent}
+        extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent,
+                 "frames_unreadable": len(getattr(self.frames, "unreadable", ()))}
         if self.flow is not None:
             extra["window"] = self.flow.limit
             if self.flow.rate is not None and self.flow.min_latency is not None:
@@ -406,6 +412,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                          "rosbag:PATH")
     parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, irat, or a preset file")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file")
+    add_fov_argument(parser)
     parser.add_argument("--mono", action="store_true", default=None, help="publish only the left image")
     parser.add_argument("--start", type=int, help="first frame index")
     parser.add_argument("--origin", type=int, help="frame whose pose is the ground truth's origin (default: --start)")
@@ -430,10 +437,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bag_arguments(parser)
 
 
+def add_fov_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--fov", type=float, metavar="DEG", help=_SourceSettings.model_fields["fov"].description)
+
+
 def config_from_args(args: argparse.Namespace) -> SourceConfig:
     """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
     (world settings from --laps and --world KEY=VALUE, a ROS bag's topics from --image-topic ...)."""
-    fields = ("source", "preset", "calibration", "mono", "start", "origin", "stop", "step", "rate", "window", "adaptive_window",
+    fields = ("source", "preset", "calibration", "fov", "mono", "start", "origin", "stop", "step", "rate", "window", "adaptive_window",
               "live_window", "ack_topic", "resend_after", "resend_acknowledged", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
     return load_config(SourceConfig, "source", config_file=args.config,
                        overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
@@ -443,5 +454,5 @@ def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = config_from_args(args)
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
                          calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world(),
-                         topics=bag_settings(config))
+                         topics=bag_settings(config), fov=config.fov)
     return SourceService(runtime, config, frames, args.instance).run()

@@ -25,11 +25,12 @@ from pathlib import Path
 from typing import Any
 
 from services.common.errors import ConfigError
-from services.source.calibration import CALIBRATION_KEYS, camera_from_mapping, read_calibration
+from services.source.calibration import CALIBRATION_KEYS, DEFAULT_FOV_DEG, assumed_camera, camera_from_mapping, read_calibration
 from services.source.frames import Camera, FrameSource, SourceError
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag")
+MONOCULAR_KINDS = ("images", "video", "camera")   # without a calibration, a pinhole camera is assumed (``fov``)
 # The settings of a ROS bag (rosbag.RosbagSource): preset keys, config keys and flags of the same
 # names, shared by `gridslam run`, `odometry` and the source service.
 BAG_FLAG_HELP = {
@@ -40,7 +41,7 @@ BAG_FLAG_HELP = {
     "stereo_tolerance": "ROS bag: seconds between the stamps of a stereo pair, at most (default 0.005)",
 }
 # Source settings a preset may hold besides the calibration, with their types.
-SETTINGS: dict[str, type] = {"fps": float, "grey": bool,
+SETTINGS: dict[str, type] = {"fps": float, "grey": bool, "fov": float,
                              **{key: float if key == "stereo_tolerance" else str for key in BAG_FLAG_HELP}}
 
 
@@ -167,6 +168,7 @@ def open_source(
     origin: int | None = None,
     world: Mapping[str, Any] | None = None,
     topics: dict[str, str | float | None] | None = None,
+    fov: float | None = None,
 ) -> FrameSource:
     """Open the source named by ``spec`` (module docstring) with frames ``start:stop:step``.
 
@@ -175,6 +177,9 @@ def open_source(
     ``world``: synthetic world settings (``world_keys()``) over the preset's.
     ``topics``: a ROS bag's settings (BAG_FLAG_HELP's keys), over the preset's; None values are
     left to the preset.
+    ``fov``: the horizontal field of view (degrees) of the pinhole camera assumed for an image
+    folder, video or live camera that has no calibration (over the preset's ``fov``; default
+    calibration.DEFAULT_FOV_DEG); such a source's ``camera_assumed`` is True.
     Raises SourceError (bad spec or data) or ConfigError (bad preset) with one line naming the file.
     """
     kind, target = parse_spec(spec)
@@ -197,10 +202,22 @@ def open_source(
         camera = preset_camera
     grey = settings.pop("grey", False)
     fps = settings.pop("fps", None)
+    preset_fov = settings.pop("fov", None)
+    fov = fov if fov is not None else preset_fov
+    source = _open(kind, target, spec, preset, settings, camera, grey, fps, mono, origin, bag,
+                   dict(start=start, stop=stop, step=step))
+    source.camera_assumed = False
+    if kind in MONOCULAR_KINDS and source.camera is None:
+        width, height = source.image_size
+        source.camera = assumed_camera(width, height, DEFAULT_FOV_DEG if fov is None else fov)
+        source.camera_assumed = True
+    return source
+
+
+def _open(kind, target, spec, preset, settings, camera, grey, fps, mono, origin, bag, selection) -> FrameSource:
     # A bag may be a recording of the synthetic world: the world's keys then describe what it holds.
     if kind not in ("synthetic", "rosbag") and settings:
         raise ConfigError(f"preset {preset}: key {next(iter(settings))!r} applies to the synthetic world only")
-    selection = dict(start=start, stop=stop, step=step)
     if kind in ("kitti", "stereo", "images"):
         from services.source import datasets
 
