@@ -3,10 +3,10 @@ matching and of the map update as the map grows, and the memory it takes.
 
 For each size N, in a fresh process (so that its resident memory is its own):
 
-- **templates**: N view templates (realistic smooth scenes, services/loopclosure/bench.py) in
-  the default matcher (the nearest-neighbour index with exact verification); then `--frames`
-  frames observed, half of them views of stored templates (a revisit: shifted, re-lit, noisy),
-  half new views. Each frame's ViewTemplates.observe is timed.
+- **matching**: N places of the place recognition (`--place-recognition`, default the
+  loopclosure's) stored, then `--frames` frames observed, half of them revisits, half new views;
+  each frame's matching is timed (services/benchmarks/matching.py says what is stored and timed
+  for each), and the memory the places take is given per 1000.
 - **map**: an ExperienceMap (the defaults: gtsam pose graph, metric closures) grown to N
   experiences by a robot driving laps of a 1 km circuit (one experience per frame, odometry with
   noise), with a closure to the experience one lap back every `--build-closure-every` frames;
@@ -41,6 +41,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from services.loopclosure.places import DEFAULT_PLACE_RECOGNITION, PLACE_RECOGNITIONS
 
 CIRCUIT_M = 1000.0   # one lap: 1000 experiences 1 m apart
 
@@ -83,24 +85,12 @@ def map_stream(size: int, frames: int, build_every: int, burst: int, seed: int):
         yield k, odometry, k, closure, timed
 
 
-def measure(size: int, frames: int, build_every: int, burst: int, seed: int) -> dict:
+def measure(size: int, frames: int, build_every: int, burst: int, seed: int, place_recognition: str) -> dict:
     """One size, in this process."""
+    from services.benchmarks.matching import measure_matching
     from services.expmap.graph import ExperienceMap, MapParams
-    from services.loopclosure.bench import make_store, query_frames, random_scenes
-    from services.loopclosure.templates import TemplateParams
 
-    rng = np.random.default_rng(seed)
-    params = TemplateParams()
-    templates = make_store(size, params, rng)
-    revisits = query_frames(templates, frames // 2, rng)
-    new = random_scenes(frames - frames // 2, 120, 640, rng)
-    images = [image for _, image in revisits] + [(scene * 255).astype(np.uint8) for scene in new]
-    order = rng.permutation(len(images))
-    match_ms = []
-    for i in order:
-        started = time.perf_counter()
-        templates.observe(images[i], size + int(i))
-        match_ms.append(1e3 * (time.perf_counter() - started))
+    matching = measure_matching(place_recognition, size, frames, np.random.default_rng(seed))
 
     experience_map = ExperienceMap(MapParams())
     map_ms, closure_ms = [], []
@@ -112,11 +102,10 @@ def measure(size: int, frames: int, build_every: int, burst: int, seed: int) -> 
             map_ms.append(elapsed)
             if closure is not None:
                 closure_ms.append(elapsed)
-    return {"size": size, "match_ms_p50": float(np.median(match_ms)), "match_ms_p99": float(np.percentile(match_ms, 99)),
+    return {"size": size, "place_recognition": place_recognition, **matching,
             "map_ms_p50": float(np.median(map_ms)), "map_ms_p99": float(np.percentile(map_ms, 99)),
             "map_closure_ms_p50": float(np.median(closure_ms)) if closure_ms else None, "rss_mib": rss_mib(),
-            "experiences": len(experience_map), "closures_accepted": experience_map.closures["accepted"],
-            "templates": len(templates)}
+            "experiences": len(experience_map), "closures_accepted": experience_map.closures["accepted"]}
 
 
 def measure_restart(steps: list, params, restarts: int, whole: bool) -> dict:
@@ -201,6 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--journal", type=Path, help="time restarts from this recorded map journal instead")
     parser.add_argument("--frames-list", default="1000,2000,4000,8000",
                         help="with --journal: comma-separated numbers of its first frames to restart from")
+    parser.add_argument("--place-recognition", choices=PLACE_RECOGNITIONS, default=DEFAULT_PLACE_RECOGNITION,
+                        help=f"the place recognition whose matching is timed (default {DEFAULT_PLACE_RECOGNITION})")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)   # internal: measure one size here, print JSON
     args = parser.parse_args(argv)
     if args.journal is not None:
@@ -210,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         from services.expmap.graph import MapParams
 
         row = {} if args.restart_only else measure(args.one, args.frames, args.build_closure_every, args.closure_frames,
-                                                   args.seed)
+                                                   args.seed, args.place_recognition)
         restart = measure_restart(stream_steps(args.one, args.build_closure_every, args.seed), MapParams(), args.restarts,
                                   args.replay)
         print(json.dumps({"size": args.one, **row, **restart}))
@@ -224,15 +215,17 @@ def main(argv: list[str] | None = None) -> int:
               "| restart p50 (ms) | max | of which the journal | whole journal replayed, no checkpoints (s) |")
         print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     else:
-        print(f"{args.frames} frames timed per size; closures on {args.closure_frames} of every 100; medians and p99 in ms")
+        print(f"{args.frames} frames timed per size; place recognition {args.place_recognition}; closures on "
+              f"{args.closure_frames} of every 100; medians and p99 in ms")
         print()
-        print("| size | match p50 | match p99 | map p50 | map p99 | map, closure frames p50 | RSS MiB | restart p50 "
-              "(of which the journal) | frames after the checkpoint |")
-        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+        print("| size | match p50 | match p99 | places MiB per 1k | map p50 | map p99 | map, closure frames p50 | RSS MiB "
+              "| restart p50 (of which the journal) | frames after the checkpoint |")
+        print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for size in sizes:
         command = [sys.executable, "-m", "services.cli", "bench", "mapping", "--one", str(size), "--frames", str(args.frames),
                    "--closure-frames", str(args.closure_frames), "--build-closure-every", str(args.build_closure_every),
-                   "--seed", str(args.seed), "--restarts", str(args.restarts)] + \
+                   "--seed", str(args.seed), "--restarts", str(args.restarts),
+                   "--place-recognition", args.place_recognition] + \
             ["--replay"] * args.replay + ["--restart-only"] * args.restart_only
         row = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
         results.append(row)
@@ -241,15 +234,16 @@ def main(argv: list[str] | None = None) -> int:
                   f"| {row['checkpoints']} | {row['tail_frames']} | {row['restart_ms_p50']:.0f} | {row['restart_ms_max']:.0f} "
                   f"| {row['journal_ms_p50']:.0f} | {replayed(row)} |", flush=True)
             continue
-        print(f"| {size:,} | {row['match_ms_p50']:.2f} | {row['match_ms_p99']:.2f} | {row['map_ms_p50']:.2f} "
+        print(f"| {size:,} | {row['match_ms_p50']:.2f} | {row['match_ms_p99']:.2f} | {row['places_mib_per_1k']:.2f} "
+              f"| {row['map_ms_p50']:.2f} "
               f"| {row['map_ms_p99']:.2f} | {row['map_closure_ms_p50'] or 0:.2f} | {row['rss_mib']:.0f} "
               f"| {row['restart_ms_p50']:.0f} ({row['journal_ms_p50']:.0f}) | {row['tail_frames']} |", flush=True)
     if len(results) > 1 and not args.restart_only:
         first, last = results[0], results[-1]
         print()
         print(f"{last['size']:,} vs {first['size']:,}: matching ×{last['match_ms_p50'] / first['match_ms_p50']:.2f}, "
-              f"map update ×{last['map_ms_p50'] / first['map_ms_p50']:.2f} (medians); memory "
-              f"{(last['rss_mib'] - first['rss_mib']) / (last['size'] - first['size']) * 1000:.1f} MiB per 1k")
+              f"map update ×{last['map_ms_p50'] / first['map_ms_p50']:.2f} (medians); the places take "
+              f"{last['places_mib_per_1k']:.2f} MiB per 1k")
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0

@@ -187,7 +187,7 @@ def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetec
             closures += observed.closures
             for name, value in (("frames", seq), ("template_ids", match.template_id), ("is_new", match.is_new),
                                 ("distances", match.distance), ("matched_frames", match.matched_frame),
-                                ("possible", bool(observed.votes)),
+                                ("possible", observed.vote is not None),
                                 ("experiences", result.experience)):
                 columns[name].append(value)
     finally:

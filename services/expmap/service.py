@@ -184,11 +184,12 @@ class ExpMapService(Service):
         self._advance()
 
     def on_closure(self, message: LoopClosure) -> None:
-        if self.map.last_frame is not None and message.header.seq <= self.map.last_frame:
-            return   # a frame re-sent after a restart: the map has it
         closures = self.closures.setdefault(message.header.seq, [])
-        if all(c.frame != message.frame for c in closures):   # a frame re-sent after a restart brings them again
-            closures.append(message)
+        if (self.map.last_frame is not None and message.header.seq <= self.map.last_frame) or \
+                any(c.frame == message.frame for c in closures):
+            self.counters.stale += 1   # a frame re-sent after a restart: the map has it, or has it in hand
+            return
+        closures.append(message)
         self._advance()
 
     def _advance(self) -> None:

@@ -12,7 +12,7 @@ of every revisit could never be closures, which on a sparse recording (a frame e
 two) is a large part of each revisit.
 
 A frame may bring several possible closures (a place recogniser that finds more than one
-earlier visit of a place: `update_votes`); at most one of them counts in a run."""
+earlier visit of a place): it votes for the one that continues the longest run (`choose`)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,10 @@ from services.common.errors import ConfigError
 class ConsistencyParams:
     window: int = 10            # consecutive frames considered (the paper's ten)
     min_votes: int = 7          # possible closures needed within the window ("more than six")
-    tolerance: int = 5          # frames by which a vote's frame offset may differ (a template spans several frames)
+    # Frames by which a vote's frame offset may differ: a template spans several frames, and a
+    # robot that stops at a revisited place votes for one place while its frames advance (seven
+    # votes in a row then span offsets six frames apart: min_votes − 1).
+    tolerance: int = 6
     recent_frames: int = 30     # a template stored fewer frames ago than this is not a loop closure
     confirm_run: bool = True    # a confirmed run confirms its earlier votes too (else only the newest)
 
@@ -66,29 +69,34 @@ class ConsistencyRule:
 
     def update(self, frame: int, template_id: int, is_new: bool, matched_frame: int) -> Closure | None:
         """One frame's match: a possible closure unless ``is_new`` or recent."""
-        return self.update_votes(frame, () if is_new else ((template_id, matched_frame),))
-
-    def update_votes(self, frame: int, votes) -> Closure | None:
-        """One frame's possible closures, (template, matched frame) pairs, best first; the first
-        of those with the longest run wins."""
         p = self.params
         while self.possible and self.possible[0].frame <= frame - p.window:
             self.possible.popleft()
         while self.confirmed and self.confirmed[0] <= frame - p.window:
             self.confirmed.popleft()
-        candidates = [Vote(frame, matched, template) for template, matched in votes if frame - matched >= p.recent_frames]
-        best: list[Vote] = []
-        for vote in candidates:
-            run = self.run_to(vote)
-            if len(run) > len(best):
-                best = run
-        self.possible.extend(candidates)
-        if len(best) < p.min_votes:
+        if is_new or frame - matched_frame < p.recent_frames:
             return None
-        newest = best[-1]
-        earlier = tuple(v for v in best[:-1] if v.frame not in self.confirmed) if p.confirm_run else ()
+        vote = Vote(frame, matched_frame, template_id)
+        run = self.run_to(vote)
+        self.possible.append(vote)
+        if len(run) < p.min_votes:
+            return None
+        earlier = tuple(v for v in run[:-1] if v.frame not in self.confirmed) if p.confirm_run else ()
         self.confirmed.extend(sorted({v.frame for v in earlier} | {frame}))
-        return Closure(frame, newest.matched_frame, newest.template, len(best), earlier)
+        return Closure(frame, matched_frame, template_id, len(run), earlier)
+
+    def choose(self, frame: int, votes) -> tuple[int, int] | None:
+        """Of a frame's possible closures, (template, matched frame) pairs best first (a place
+        recogniser may find several earlier visits of one place), the one that continues the
+        longest run of the window (the first of those); None when none is old enough."""
+        best, longest = None, 0
+        for template, matched in votes:
+            if frame - matched < self.params.recent_frames:
+                continue
+            length = len(self.run_to(Vote(frame, matched, template)))
+            if length > longest:
+                best, longest = (template, matched), length
+        return best
 
     def consistent_votes(self) -> int:
         """The length of the run ending at the window's newest vote (`run_to`)."""
@@ -103,11 +111,11 @@ class ConsistencyRule:
         offset = newest.frame - newest.matched_frame
         earlier = [v for v in self.possible if v.frame < newest.frame
                    and abs((v.frame - v.matched_frame) - offset) <= self.params.tolerance]
-        # Longest chain ending at each vote (the window holds ten frames, a few votes each).
+        # Longest chain ending at each vote (the window holds ten votes at most).
         longest: list[int] = []
         previous: list[int] = []
         for i, vote in enumerate(earlier):
-            before = [j for j in range(i) if earlier[j].frame < vote.frame and earlier[j].matched_frame <= vote.matched_frame]
+            before = [j for j in range(i) if earlier[j].matched_frame <= vote.matched_frame]
             j = max(before, key=lambda j: longest[j], default=-1)
             longest.append(1 + (longest[j] if j >= 0 else 0))
             previous.append(j)

@@ -44,7 +44,6 @@ from services.source.frames import Camera
 
 GEOMETRIES = ("auto", "scanline", "none")
 MEMORY_KEYFRAMES = 4096   # keyframes kept without a store (the oldest go first)
-MAX_VOTES = 3             # possible closures measured per frame (a recogniser's best)
 
 
 @dataclass(frozen=True)
@@ -86,7 +85,7 @@ class Confirmed:
 class Observation:
     match: ViewMatch
     closures: tuple[Confirmed, ...]             # confirmed at this frame, oldest frame first
-    votes: tuple[MeasuredVote, ...] = ()        # this frame's possible closures
+    vote: MeasuredVote | None = None            # this frame's possible closure
     journal_view: dict | None = None            # what the recogniser must replay (a new place, a sequence patch)
     candidate: tuple[int, float] | None = None  # the best older place's frame and score (precision–recall)
 
@@ -154,9 +153,9 @@ class LoopClosureDetector:
         self.scanline_covariance = tuple(np.diag([scanline_translation_sigma ** 2, scanline_translation_sigma ** 2,
                                                   scanline_heading_sigma ** 2]).ravel())
         self.keyframes = keyframes if keyframes is not None else MemoryKeyframes()
-        # The measured votes of the rule's window, by (frame, template): a run confirmed later
-        # takes its earlier frames' measurements from here.
-        self._measured: dict[tuple[int, int], Measurement] = {}
+        # The measured votes of the rule's window, by frame: a run confirmed later takes its
+        # earlier frames' measurements from here.
+        self._measured: dict[int, Measurement] = {}
         self.counts = {"closures": 0, "geometry_failed": 0}
 
     @property
@@ -177,30 +176,29 @@ class LoopClosureDetector:
                 keyframe = self.geometry.keyframe(left, right, camera)
                 self.keyframes.append(match.template_id, keyframe)
             journal_view = {**(journal_view or {}), **(self.places.store(match, keyframe) or {})}
-        recent = self.rule.params.recent_frames
-        votes = tuple(MeasuredVote(template, matched, self._measure(template, matched, match, frame))
-                      for template, matched in recognised.votes[:MAX_VOTES] if seq - matched >= recent)
-        closures = self._confirm(seq, votes)
-        return Observation(match, closures, votes, journal_view, recognised.candidate)
+        chosen = self.rule.choose(seq, recognised.votes)
+        vote = None if chosen is None else MeasuredVote(*chosen, self._measure(*chosen, match, frame))
+        return Observation(match, self._confirm(seq, vote), vote, journal_view, recognised.candidate)
 
-    def replay(self, seq: int, match: ViewMatch, journal_view: dict | None, votes: tuple[MeasuredVote, ...]) \
+    def replay(self, seq: int, match: ViewMatch, journal_view: dict | None, vote: MeasuredVote | None) \
             -> tuple[Confirmed, ...]:
-        """Rebuild the state one journaled frame left (its place, if new, its votes, its counts);
+        """Rebuild the state one journaled frame left (its place, if new, its vote, its counts);
         the keyframes are in the store already."""
         self.places.replay(seq, match, journal_view)
-        return self._confirm(seq, votes)
+        return self._confirm(seq, vote)
 
-    def _confirm(self, seq: int, votes: tuple[MeasuredVote, ...]) -> tuple[Confirmed, ...]:
-        window = self.rule.params.window
-        for key in [key for key in self._measured if key[0] <= seq - window]:
-            del self._measured[key]
-        for vote in votes:
-            self._measured[(seq, vote.template)] = vote.measurement
-        closure = self.rule.update_votes(seq, [(v.template, v.matched_frame) for v in votes])
+    def _confirm(self, seq: int, vote: MeasuredVote | None) -> tuple[Confirmed, ...]:
+        for frame in [frame for frame in self._measured if frame <= seq - self.rule.params.window]:
+            del self._measured[frame]
+        if vote is None:
+            self.rule.update(seq, -1, True, seq)
+            return ()
+        self._measured[seq] = vote.measurement
+        closure = self.rule.update(seq, vote.template, False, vote.matched_frame)
         if closure is None:
             return ()
         run = [*closure.earlier, Vote(seq, closure.matched_frame, closure.matched_template)]
-        confirmed = tuple(Confirmed(v.frame, v.matched_frame, v.template, closure.votes, self._measured[(v.frame, v.template)])
+        confirmed = tuple(Confirmed(v.frame, v.matched_frame, v.template, closure.votes, self._measured[v.frame])
                           for v in run)
         self.counts["closures"] += len(confirmed)
         self.counts["geometry_failed"] += sum(c.measurement.method == "none" and self.mode != "none" for c in confirmed)

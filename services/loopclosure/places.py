@@ -27,6 +27,9 @@ from services.loopclosure.templates import TemplateParams, ViewMatch, ViewTempla
 from services.loopclosure.vocabulary import Vocabulary, default_vocabulary
 
 PLACE_RECOGNITIONS = ("scanline", "bow", "sequence")
+# The default, chosen by `gridslam bench place-recognition` on real recordings and the synthetic
+# worlds (docs/mapping.md, "Place recognition"); the presets tuned for RatSLAM's templates keep scanline.
+DEFAULT_PLACE_RECOGNITION = "bow"
 
 
 @dataclass(frozen=True)

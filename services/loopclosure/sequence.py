@@ -80,6 +80,12 @@ class Sequences:
     def __len__(self) -> int:
         return len(self.frames)
 
+    @property
+    def nbytes(self) -> int:
+        """Memory of the stored places: their images and the index's copy and links of each."""
+        dim = self._images.shape[1]
+        return self._images.nbytes + self._indexed * (4 * dim + 8 * HNSW_LINKS + 16)
+
     def image_of(self, image: np.ndarray) -> np.ndarray:
         """The frame's small image (float32 0..1, area-averaged grey)."""
         if image.ndim == 3:

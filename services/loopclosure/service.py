@@ -26,7 +26,7 @@ from services.loopclosure.consistency import ConsistencyParams
 from services.loopclosure.detector import Confirmed, LoopClosureDetector, MeasuredVote, Measurement
 from services.loopclosure.geometry import GeometryParams
 from services.loopclosure.keyframes import KeyframeStore
-from services.loopclosure.places import PLACE_RECOGNITIONS
+from services.loopclosure.places import DEFAULT_PLACE_RECOGNITION, PLACE_RECOGNITIONS
 from services.loopclosure.sequence import SequenceParams
 from services.loopclosure.templates import TemplateParams, ViewMatch
 from services.source.frames import Camera
@@ -40,7 +40,7 @@ class _LoopClosureFields(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     place_recognition: Literal[PLACE_RECOGNITIONS] = Field(
-        "bow", description="How a frame's place is recognised: scanline (RatSLAM's view templates, the paper's model), "
+        DEFAULT_PLACE_RECOGNITION, description="How a frame's place is recognised: scanline (RatSLAM's view templates, the paper's model), "
                            "bow (a bag of binary words, verified geometrically) or sequence (SeqSLAM).")
     crop: tuple[float, float, float, float] = Field((0.0, 1.0, 0.0, 1.0), description="Crop x0, x1, y0, y1 as fractions of the image.")
     width: int = Field(60, ge=4, description="Template columns.")
@@ -55,7 +55,8 @@ class _LoopClosureFields(BaseModel):
     index_rows: int = Field(3, ge=1, description="Row bands of the index's template descriptor.")
     window: int = Field(10, ge=1, description="Consecutive frames of the consistency rule.")
     min_votes: int = Field(7, ge=1, description="Consistent possible closures needed in the window (paper: more than six).")
-    tolerance: int = Field(5, ge=0, description="Frames by which the votes' frame offsets may disagree.")
+    tolerance: int = Field(6, ge=0, description="Frames by which the votes' frame offsets may disagree (min_votes − 1: "
+                                                "a robot that stops at a revisited place).")
     recent_frames: int = Field(30, ge=1, description="Templates stored fewer frames ago are not loop closures.")
     closure: Literal["metric", "ratslam"] = Field(
         "metric", description="metric: measure each closure's relative pose; ratslam: no measurement (the map snaps).")
@@ -123,8 +124,8 @@ JOURNAL_FORMAT = "gridslam-view-templates"
 JOURNAL_VERSION = 3   # 3: place recognitions, votes measured as they are made
 
 
-def _measurement_record(measurement: Measurement) -> dict:
-    return dataclasses.asdict(measurement)
+def _vote_record(vote: MeasuredVote | None) -> dict | None:
+    return None if vote is None else dataclasses.asdict(vote)
 
 
 def _measurement_of(record: dict) -> Measurement:
@@ -189,8 +190,7 @@ class LoopClosureService(Service):
             self.journal.append({"frame": seq, "template": match.template_id, "new": match.is_new,
                                  "distance": match.distance, "angle": match.relative_angle,
                                  "matched_frame": match.matched_frame, "shift": match.shift, "view": observed.journal_view,
-                                 "votes": [[v.template, v.matched_frame, _measurement_record(v.measurement)]
-                                           for v in observed.votes]})
+                                 "vote": _vote_record(observed.vote)})
         self._remember(seq, observed.match, observed.closures)
 
     def _publish(self, header, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:
@@ -212,9 +212,10 @@ class LoopClosureService(Service):
         """Rebuild the places and the consistency window from one journal record."""
         match = ViewMatch(record["template"], record["new"], record["distance"], record["angle"], record["matched_frame"],
                           record["shift"])
-        votes = tuple(MeasuredVote(template, matched, _measurement_of(measurement))
-                      for template, matched, measurement in record["votes"])
-        closures = self.detector.replay(record["frame"], match, record["view"], votes)
+        vote = record["vote"]
+        if vote is not None:
+            vote = MeasuredVote(vote["template"], vote["matched_frame"], _measurement_of(vote["measurement"]))
+        closures = self.detector.replay(record["frame"], match, record["view"], vote)
         self._remember(record["frame"], match, closures)
 
     def _remember(self, frame: int, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:

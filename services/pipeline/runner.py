@@ -409,11 +409,11 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
                          fov=settings.fov)
     total = None if getattr(frames, "live", False) else len(frames)
     assumed = assess(config.egomotion, config.preset, config.config_file, config.camera_height, config.source, frames)
-    for line in assumed.lines():
-        (announce or log.info)(line)
     folder = results_dir(out)
     clear_previous_run(folder, overwrite)
     write_config(folder / "config.json", {**config.model_dump(mode="json"), ASSUMED: assumed.record()})
+    for line in assumed.lines():
+        (announce or log.info)(line)
     (folder / "logs").mkdir(exist_ok=True)
     ack_topic = "map/pose" if config.mapping else "grid/pose"
     supervisor = Supervisor(folder / "logs")
