@@ -23,7 +23,7 @@ def register(subparsers) -> None:
     parser.add_argument("--source", action="append", metavar="SPEC[@PRESET][/EVERY]",
                         help="frames to train on, repeatable: a source spec, its preset and every how many frames "
                              f"(default: the shipped vocabulary's, {' '.join(SHIPPED_TRAINING)})")
-    parser.add_argument("--branching", type=int, default=10, help="children per node of the tree (default 10)")
+    parser.add_argument("--branching", type=int, default=16, help="children per node of the tree (default 16)")
     parser.add_argument("--depth", type=int, default=4, help="levels of the tree: branching^depth words (default 4)")
     parser.add_argument("--out", type=Path, help="vocabulary file to write (default: the one the package ships)")
     parser.set_defaults(func=run)

@@ -58,6 +58,8 @@ class _LoopClosureFields(BaseModel):
     tolerance: int = Field(6, ge=0, description="Frames by which the votes' frame offsets may disagree (min_votes − 1: "
                                                 "a robot that stops at a revisited place).")
     recent_frames: int = Field(30, ge=1, description="Templates stored fewer frames ago are not loop closures.")
+    confirm_run: bool = Field(True, description="A confirmed run of votes confirms the closures of its earlier frames "
+                                                "too (false: only the newest frame's, as RatSLAM).")
     closure: Literal["metric", "ratslam"] = Field(
         "metric", description="metric: measure each closure's relative pose; ratslam: no measurement (the map snaps).")
     geometry: Literal["auto", "scanline"] = Field(
@@ -89,7 +91,7 @@ class _LoopClosureFields(BaseModel):
 
     def consistency_params(self) -> ConsistencyParams:
         return ConsistencyParams(window=self.window, min_votes=self.min_votes, tolerance=self.tolerance,
-                                 recent_frames=self.recent_frames)
+                                 recent_frames=self.recent_frames, confirm_run=self.confirm_run)
 
     def geometry_parameters(self) -> GeometryParams:
         known = {field.name for field in dataclasses.fields(GeometryParams)}

@@ -25,10 +25,10 @@ KILLS = {"source": 30, "egomotion": 60, "gridcells": 90, "loopclosure": 195, "ex
 ENV = {**os.environ, "GRIDSLAM_EXPMAP_CHECKPOINT_UPDATES": "20", "GRIDSLAM_EXPMAP_CHECKPOINT_FRAMES": "10"}
 
 
-def run_args(out: Path, port: int) -> list[str]:
+def run_args(out: Path, port: int, *extra: str) -> list[str]:
     # The passthrough estimator is deterministic (stereo's RANSAC draws differ from run to run).
     return GRIDSLAM + ["run", "--source", "synthetic:0", "--preset", "synthetic", "--egomotion", "passthrough", *WORLD,
-                       "--n-frames", str(FRAMES), "--listen", endpoint(port), "--out", str(out)]
+                       "--n-frames", str(FRAMES), "--listen", endpoint(port), "--out", str(out), *extra]
 
 
 def service_pid(port: int, name: str) -> int | None:
@@ -57,19 +57,22 @@ def frames_in_map(out: Path) -> int:
         return 0
 
 
-def test_kill_each_service_in_turn(tmp_path):
+def run_with_kills(tmp_path, kills: dict[str, int], *extra: str) -> tuple[Path, Path]:
+    """An uninterrupted run and one whose services `kills` are killed with SIGKILL once the map
+    holds so many frames: (reference folder, faulty folder)."""
     reference, faulty = tmp_path / "reference", tmp_path / "faulty"
-    done = subprocess.run(run_args(reference, free_port()), cwd=REPO, capture_output=True, text=True, timeout=300, env=ENV)
+    done = subprocess.run(run_args(reference, free_port(), *extra), cwd=REPO, capture_output=True, text=True, timeout=300,
+                          env=ENV)
     assert done.returncode == 0, done.stderr
 
     port = free_port()
-    run = subprocess.Popen(run_args(faulty, port), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                           env=ENV)
+    run = subprocess.Popen(run_args(faulty, port, *extra), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True, env=ENV)
     killed = []
     try:
         deadline = time.monotonic() + 300
         while run.poll() is None and time.monotonic() < deadline:
-            for name, at in KILLS.items():
+            for name, at in kills.items():
                 if name not in killed and frames_in_map(faulty) >= at:
                     pid = service_pid(port, name)
                     if pid is not None:
@@ -81,7 +84,12 @@ def test_kill_each_service_in_turn(tmp_path):
         if run.poll() is None:
             run.kill()
     assert run.returncode == 0, err
-    assert killed == list(KILLS), f"killed only {killed}"
+    assert killed == list(kills), f"killed only {killed}"
+    return reference, faulty
+
+
+def test_kill_each_service_in_turn(tmp_path):
+    reference, faulty = run_with_kills(tmp_path, KILLS)
 
     metrics = json.loads((faulty / "metrics.json").read_text())
     assert {name: metrics["services"][name]["restarts"] for name in KILLS} == dict.fromkeys(KILLS, 1)
@@ -99,6 +107,18 @@ def test_kill_each_service_in_turn(tmp_path):
     assert min(closure_frames) < KILLS["loopclosure"] and max(closure_frames) > KILLS["expmap"], closure_frames
     assert (faulty / "loop_closures.csv").read_text() == closures
     assert metrics["stages"]["map"]["frames"] == FRAMES and metrics["stages"]["map"]["missing_frames"] == 0
+
+
+def test_loopclosure_killed_mid_run_resumes_its_bag_of_words_to_the_same_closures(tmp_path):
+    """The bag-of-words place recognition: its places, index and votes come back from the
+    journal, so the restarted service confirms and measures the same closures."""
+    reference, faulty = run_with_kills(tmp_path, {"loopclosure": KILLS["loopclosure"]}, "--place-recognition", "bow")
+    assert journal(faulty / "view_templates.log") == journal(reference / "view_templates.log")
+    closures = (reference / "loop_closures.csv").read_text()
+    closure_frames = [int(line.split(",")[0]) for line in closures.splitlines()[1:]]
+    assert min(closure_frames) < KILLS["loopclosure"] < max(closure_frames), closure_frames
+    assert (faulty / "loop_closures.csv").read_text() == closures
+    assert json.loads((faulty / "metrics.json").read_text())["services"]["loopclosure"]["restarts"] == 1
 
 
 def test_service_killed_during_start_up_is_restarted(tmp_path):

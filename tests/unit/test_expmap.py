@@ -692,9 +692,7 @@ def test_map_build_on_nubot_closes_the_loop_with_stereo_closures_and_export_repl
                      "--preset", "nubot", "--out", str(out)]) == 0
     summary = json.loads((out / "summary.json").read_text())["summary"]
     assert summary["confirmed_closures"] >= 1 and summary["confirmed_closures_elsewhere"] == 0
-    # A confirmed run confirms its earlier votes: the first closures are of frames 175..179, where
-    # the robot is back within 1.1 m of its start by LIBVISO2's odometry (same_place below).
-    assert 175 <= summary["first_confirmed"]["frame"] <= 204 and summary["first_confirmed"]["matched_frame"] <= 20
+    assert 178 <= summary["first_confirmed"]["frame"] <= 204 and summary["first_confirmed"]["matched_frame"] <= 20
     assert summary["closures_accepted"] == summary["confirmed_closures"] and summary["closures_rejected"] == 0
     rows = list(csv.DictReader(open(out / "loop_closures.csv")))
     assert all(r["same_place"] == "True" for r in rows)
