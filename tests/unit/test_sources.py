@@ -4,6 +4,7 @@ layout, bad input for every source, and the live camera's newest-frame-only logi
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from pathlib import Path
@@ -116,7 +117,13 @@ def test_image_folder_natural_order(tmp_path):
     source = open_source(f"images:{tmp_path}")
     assert [int(f.left[0, 0]) for f in source] == [15, 25, 105, 115]
     assert [f.seq for f in source] == [0, 1, 2, 3] and source[2].stamp == pytest.approx(0.2)
-    assert source.camera is None
+    # No calibration: a pinhole camera is assumed, centred, with the default field of view (65°).
+    assert source.camera_assumed and source.camera.fx == pytest.approx(16 / math.tan(math.radians(32.5)))
+    assert (source.camera.cx, source.camera.cy, source.camera.baseline) == (15.5, 11.5, 0.0)
+    assert source[0].camera == source.camera
+    assert open_source(f"images:{tmp_path}", fov=90.0).camera.fx == pytest.approx(16.0)
+    calibrated = open_source(f"images:{tmp_path}", calibration=Camera(20.0, 20.0, 16.0, 12.0))
+    assert not calibrated.camera_assumed and calibrated.camera.fx == 20.0
 
 
 def test_video_file_indexed_and_stepped(tmp_path):
@@ -127,7 +134,7 @@ def test_video_file_indexed_and_stepped(tmp_path):
     writer.release()
     source = open_source(f"video:{path}")
     assert len(source) == 12
-    assert source.camera is None
+    assert source.camera_assumed and source.camera.fx == pytest.approx(32 / math.tan(math.radians(32.5)))   # none given
     for k in (7, 2, 11, 0):  # seeking back and forth
         frame = source[k]
         assert frame.seq == k and abs(float(frame.left.mean()) - (10 * k + 5)) < 3
