@@ -138,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--n-frames", type=int, help="only the first N frames")
     parser.add_argument("--laps", type=int, help="synthetic world: laps of its route")
     parser.add_argument("--out", type=Path, help="folder for place_recognition.png and .json")
+    parser.add_argument("--title", help="title of the plot (default: the source)")
     args = parser.parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = sorted(set(methods) - set(PLACE_RECOGNITIONS))
@@ -167,6 +168,6 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / "place_recognition.json").write_text(json.dumps(
             {"source": args.source, "preset": args.preset, "ground_truth": args.ground_truth, "frames": len(frames),
              "results": [{k: v for k, v in row.items() if k != "curve"} for row in rows]}, indent=1))
-        png = plot(args.out / "place_recognition.png", rows, Path(args.source.partition(":")[2]).name or args.source)
+        png = plot(args.out / "place_recognition.png", rows, args.title or args.source)
         print(f"\nresults: {args.out}" + ("" if png else " (no plot: the plots extra is not installed)"))
     return 0

@@ -200,7 +200,7 @@ def build_map(images: Iterable, odometry: Trajectory, detector: LoopClosureDetec
         if len(reference) < len(x):
             raise EvidenceError(f"the reference path has {len(reference)} poses, the odometry {len(x)}")
         reference = reference.select(arrays["frames"])
-    return OfflineMap(**arrays, closures=closures, experience_map=experience_map, template_count=len(detector.templates),
+    return OfflineMap(**arrays, closures=closures, experience_map=experience_map, template_count=len(detector.places),
                       steps=steps, before=before, reference=reference)
 
 

@@ -110,12 +110,13 @@ class InvertedIndex:
 @dataclass(frozen=True)
 class Recognition:
     """What `BagOfWords.observe` found: the recent place the frame is at (-1: none, the frame is a
-    new place) and its inliers; the verified old places, most inliers first (the frame's possible
-    loop closures); and the frame's raw score, the inliers of its best old candidate `best_old`
-    (-1: no old place)."""
+    new place), its inliers and L1 score; the verified old places, most inliers first (the frame's
+    possible loop closures); and the frame's raw score, the inliers of its best old candidate
+    `best_old` (-1: no old place)."""
 
     place: int
     inliers: int
+    score: float
     votes: tuple[int, ...]
     best_old: int
     best_old_inliers: int
@@ -149,7 +150,7 @@ class BagOfWords:
         """Score the stored places against the frame's bag, verify the best (module docstring)."""
         count = len(self.frames)
         if count == 0:
-            return Recognition(-1, 0, (), -1, 0)
+            return Recognition(-1, 0, 0.0, (), -1, 0)
         scores = self.index.scores(bag, count)
         old = bisect.bisect_right(self.frames, frame - self.recent_frames)   # places are stored in frame order
         chosen = _best(scores[:old], self.params.candidates)
@@ -160,7 +161,8 @@ class BagOfWords:
         votes = tuple(p for p in rank if p < old and inliers[p] >= self.params.min_inliers)
         place = next((p for p in rank if p >= old and inliers[p] >= self.params.place_inliers), -1)
         top_old = next((p for p in rank if p < old), -1)
-        return Recognition(place, inliers.get(place, 0), votes, top_old, inliers.get(top_old, 0))
+        return Recognition(place, inliers.get(place, 0), float(scores[place]) if place >= 0 else 0.0, votes, top_old,
+                           inliers.get(top_old, 0))
 
 def _best(scores: np.ndarray, k: int) -> np.ndarray:
     """Indices of the k highest positive scores, best first (ties: lower index first)."""

@@ -24,7 +24,7 @@ measurement of its own frame — the rule confirms the run of votes, earlier fra
 - `none`: no measurement (the map can then only snap, closure = ratslam).
 
 A closure whose geometry fails is published with measurement `none` and the reason, and counted.
-Everything a frame changes is in its Observation (`journal_view`, `votes`), so that `replay`
+Everything a frame changes is in its Observation (`journal_view`, `vote`), so that `replay`
 rebuilds the same state from a journal after a restart.
 """
 
@@ -138,8 +138,8 @@ class LoopClosureDetector:
     def __init__(self, places, consistency: ConsistencyParams, geometry: GeometryParams = GeometryParams(),
                  mode: str = "auto", scanline_translation_sigma: float = 0.5, scanline_heading_sigma: float = 0.05,
                  keyframes=None, place_recognition: str = "scanline"):
-        """``places``: the recogniser's parameters (TemplateParams for scanline, PlaceParams
-        for bow and sequence: places.py)."""
+        """``places``: the recogniser's parameters (TemplateParams for scanline, BowParams for
+        bow, SequenceParams for sequence: places.py)."""
         if mode not in GEOMETRIES:
             raise ConfigError(f"loop closure: geometry {mode!r} is not one of {', '.join(GEOMETRIES)}")
         if place_recognition not in PLACE_RECOGNITIONS:
@@ -157,11 +157,6 @@ class LoopClosureDetector:
         # earlier frames' measurements from here.
         self._measured: dict[int, Measurement] = {}
         self.counts = {"closures": 0, "geometry_failed": 0}
-
-    @property
-    def templates(self):
-        """The stored places (len() is their number)."""
-        return self.places
 
     def observe(self, seq: int, left: np.ndarray, right: np.ndarray | None = None,
                 camera: Camera | None = None) -> Observation:

@@ -97,7 +97,7 @@ class BowPlaces:
         candidate = (frames[recognition.best_old], float(recognition.best_old_inliers)) if recognition.best_old >= 0 else None
         if recognition.place >= 0:
             place = recognition.place
-            match = ViewMatch(place, False, 0.0, 0.0, frames[place], 0)
+            match = ViewMatch(place, False, max(0.0, 1.0 - recognition.score), 0.0, frames[place], 0)
         else:
             match = ViewMatch(len(frames), True, 0.0, 0.0, seq, 0)
         return Recognised(match, votes, None, candidate)
@@ -151,7 +151,7 @@ class SequencePlaces:
         return None   # the frame's image (its journal view) is the place
 
     def replay(self, seq: int, match: ViewMatch, view: dict | None) -> None:
-        self.sequences.replay(seq, _unb64(view["image"], np.float32, self.sequences.image_shape), match.is_new)
+        self.sequences.replay(seq, _unb64(view["image"], np.uint8, self.sequences.image_shape), match.is_new)
 
 
 def recogniser(name: str, params, recent_frames: int):

@@ -87,15 +87,15 @@ class Sequences:
         return self._images.nbytes + self._indexed * (4 * dim + 8 * HNSW_LINKS + 16)
 
     def image_of(self, image: np.ndarray) -> np.ndarray:
-        """The frame's small image (float32 0..1, area-averaged grey)."""
+        """The frame's small image (uint8 grey, area-averaged): what a journal keeps of a frame."""
         if image.ndim == 3:
             image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        return cv2.resize(image.astype(np.float32) / 255.0, (self.params.width, self.params.height),
-                          interpolation=cv2.INTER_AREA)
+        return cv2.resize(image, (self.params.width, self.params.height), interpolation=cv2.INTER_AREA)
 
     def normalised(self, small: np.ndarray) -> np.ndarray:
         """Patch normalisation: every `patch`×`patch` square to zero mean and unit deviation (flat)."""
         p = self.params.patch
+        small = small.astype(np.float32) / 255.0
         out = np.zeros_like(small)
         for y in range(0, small.shape[0], p):
             for x in range(0, small.shape[1], p):

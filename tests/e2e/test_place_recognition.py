@@ -53,3 +53,30 @@ def test_the_shipped_vocabulary_is_what_its_command_trains(tmp_path):
     assert trained.trained_on == shipped.trained_on
     assert all(np.array_equal(a, b) for a, b in zip(trained.levels, shipped.levels))
     assert np.array_equal(trained.idf, shipped.idf)
+
+
+def kitti_video(shared_data, path) -> None:
+    """A 10 s video (5 frames/s) of the KITTI clip's 51 left images: no calibration comes with it."""
+    import cv2
+
+    files = sorted((shared_data / "kitti06_clip" / "image_l").glob("*.png"))
+    first = cv2.imread(str(files[0]))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 5.0, (first.shape[1], first.shape[0]))
+    for file in files:
+        writer.write(cv2.imread(str(file)))
+    writer.release()
+
+
+def test_a_video_without_a_calibration_runs_mono_end_to_end_and_says_what_it_assumed(tmp_path, shared_data):
+    from services.evaluation.trajectory import read_tum
+
+    video = tmp_path / "kitti.avi"
+    kitti_video(shared_data, video)
+    plain = run(tmp_path / "plain", "--source", f"video:{video}", "--egomotion", "mono", "--no-mapping")
+    assert "egomotion: mono; scale arbitrary" in plain["stderr"] and "camera: assumed: a pinhole with a 65°" in plain["stderr"]
+    assert plain["metrics"]["stages"]["egomotion"]["frames"] == 51
+    metric = run(tmp_path / "metric", "--source", f"video:{video}", "--egomotion", "mono", "--fov", "82",
+                 "--camera-height", "1.65", "--no-mapping")
+    assert metric["config"]["assumed"]["metric_scale"] and "1.65 m, --camera-height" in metric["stderr"]
+    truth = 59.9   # the clip's path (poses.txt)
+    assert abs(read_tum(tmp_path / "metric" / "run" / "egomotion.tum").path_length() - truth) < 0.1 * truth

@@ -6,6 +6,7 @@ checked to hold every frame exactly once."""
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -158,13 +159,22 @@ def test_service_stopped_for_good_fails_the_run_with_a_clear_message(tmp_path):
 @pytest.mark.parametrize("source, egomotion, cause, hint", [
     ("kitti", "stereo", "the stereo estimator needs a stereo pair with its calibration, and kitti:", "use --egomotion mono"),
     ("images", "passthrough", "the passthrough estimator passes on the frames' odometry or ground truth", "use --egomotion mono"),
+    ("stereo", "mono", "the mono estimator needs camera intrinsics and stereo:", "give --calibration FILE"),
 ])
 def test_a_run_whose_estimator_cannot_work_on_its_source_fails_in_seconds_with_the_cause(tmp_path, shared_data, source,
                                                                                         egomotion, cause, hint):
     """The stereo estimator on the KITTI clip's left images only, the passthrough estimator on an
-    image folder without odometry: the run fails before it starts anything, in one line that says
+    image folder without odometry, the mono estimator on a stereo folder without its
+    calibration: the run fails before it starts anything, in one line that says
     why and what to do (not after a stall of a minute with the cause only in a service's log)."""
-    folder = shared_data / ("kitti06_clip" if source == "kitti" else "rtabmap_samples/images")
+    if source == "stereo":   # a stereo folder without its calibration (NuBot's first frames, copied)
+        folder = tmp_path / "pairs"
+        for side in ("left", "right"):
+            (folder / side).mkdir(parents=True)
+            for k in range(10):
+                shutil.copy(shared_data / "nubot_scene1" / side / f"{k:06d}.png", folder / side)
+    else:
+        folder = shared_data / ("kitti06_clip" if source == "kitti" else "rtabmap_samples/images")
     started = time.monotonic()
     run = subprocess.run(GRIDSLAM + ["run", "--source", f"{source}:{folder}", "--egomotion", egomotion, "--n-frames", "10",
                                      "--listen", endpoint(free_port()), "--out", str(tmp_path / "run")],

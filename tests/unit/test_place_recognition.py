@@ -122,17 +122,17 @@ def test_bow_parameters_are_checked_by_their_declaration():
 # --- sequences --------------------------------------------------------------------------------
 def test_a_sequence_of_frames_revisiting_a_route_votes_for_its_places_and_new_views_do_not():
     rng = np.random.default_rng(3)
-    route = [rng.random((24, 32)).astype(np.float32) for _ in range(60)]
+    route = [rng.integers(0, 256, (24, 32), dtype=np.uint8) for _ in range(60)]
     sequences = Sequences(SequenceParams(), recent_frames=30)
     for frame, image in enumerate(route):
         sequences.observe(frame, image)
     assert len(sequences) == 60   # every view unlike the last stored: a place each
     votes = []
     for k, image in enumerate(route[10:30]):   # the same stretch again, re-lit and noisy
-        seen = np.clip(0.8 * image + 0.1 + rng.normal(0, 0.02, image.shape), 0, 1).astype(np.float32)
+        seen = np.clip(0.8 * image + 25 + rng.normal(0, 5, image.shape), 0, 255).astype(np.uint8)
         votes.append(sequences.observe(100 + k, seen).vote)
     assert votes[-1] == 29 and sum(v == 10 + k for k, v in enumerate(votes)) >= 8
-    strangers = [sequences.observe(200 + k, rng.random((24, 32)).astype(np.float32)).vote for k in range(12)]
+    strangers = [sequences.observe(200 + k, rng.integers(0, 256, (24, 32), dtype=np.uint8)).vote for k in range(12)]
     assert all(v == -1 for v in strangers[-3:])
 
 
