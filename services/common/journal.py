@@ -109,3 +109,32 @@ def read_records(path: Path) -> tuple[list[dict], int, bool]:
     if torn:
         log.warning("%s: torn last record skipped (a crash while writing)", path)
     return records, good, torn
+
+
+def continue_from(source: Path, target: Path, header: dict, record: dict) -> int:
+    """Start the journal ``target`` as a copy of the journal ``source`` followed by ``record`` (a
+    later session of a saved map): the source is only read, and checked first — its header must
+    be ``header`` (the same kind of journal, written with the same parameters) and every record
+    intact (a torn last one is left out, with a warning). Returns the records copied."""
+    source, target = Path(source), Path(target)
+    records, good, _ = read_records(source)
+    if not records or records[0].get("format") != header.get("format"):
+        raise JournalError(f"{source}: not a {header.get('format', 'gridslam')} journal")
+    if records[0] != header:
+        differing = sorted(key for key in {**records[0].get("params", {}), **header.get("params", {})}
+                           if records[0].get("params", {}).get(key) != header.get("params", {}).get(key))
+        what = f"parameters {', '.join(differing)}" if differing else "another version or vocabulary"
+        raise JournalError(f"{source}: written with other {what} than this run's; run with the same settings "
+                           "(preset, config) as the map was made with")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with open(source, "rb") as handle:
+            intact = handle.read(good)
+        with open(target, "wb") as handle:
+            handle.write(intact)
+            handle.write(_line(record).encode())
+            handle.flush()
+            os.fsync(handle.fileno())
+    except OSError as error:
+        raise JournalError(f"{target}: cannot write ({error.strerror or error})") from None
+    return len(records) - 1

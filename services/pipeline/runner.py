@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
+from services.common.layout import CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
 from services.egomotion import ESTIMATORS
 from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
@@ -52,12 +53,6 @@ SHARDED_SPARE_BLOCKS = 1
 RESTARTS_WITHOUT_PROGRESS = 3
 TAIL_LINES = 20             # last lines of each child's output kept in memory
 LIVENESS_CHECK_S = 2.0      # while no frame completes, how often the stages' health tokens are checked
-MAP_LOG = "experience_map.log"           # the service state files in the results folder, so that a
-TEMPLATE_LOG = "view_templates.log"      # service the runner restarts resumes where it stopped
-GRID_CHECKPOINT = "gridcells.checkpoint.npz"
-# What a run leaves that the next run in the same folder would resume from (the services' state,
-# with their side files such as the keyframes) or append to (the logs).
-RUN_STATE_PATTERNS = ("experience_map.*", "view_templates.*", "gridcells.checkpoint*", "logs/*.log")
 
 
 ASSUMED = "assumed"   # config.json's entry of what the run assumed (assumptions.py), beside RunConfig's fields
@@ -411,12 +406,12 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     assumed = assess(config.egomotion, config.preset, config.config_file, config.camera_height, config.source, frames)
     folder = results_dir(out)
     clear_previous_run(folder, overwrite)
-    write_config(folder / "config.json", {**config.model_dump(mode="json"), ASSUMED: assumed.record()})
+    write_config(folder / CONFIG, {**config.model_dump(mode="json"), ASSUMED: assumed.record()})
     for line in assumed.lines():
         (announce or log.info)(line)
-    (folder / "logs").mkdir(exist_ok=True)
+    (folder / LOGS).mkdir(exist_ok=True)
     ack_topic = "map/pose" if config.mapping else "grid/pose"
-    supervisor = Supervisor(folder / "logs")
+    supervisor = Supervisor(folder / LOGS)
     started = time.monotonic()
     try:
         if config.connect is None:

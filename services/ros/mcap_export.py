@@ -208,7 +208,7 @@ def _read_json(path: Path) -> dict:
 
 
 def _map_log(folder: Path):
-    from services.pipeline.runner import MAP_LOG
+    from services.common.layout import MAP_LOG
 
     if not (folder / MAP_LOG).is_file():
         return None
