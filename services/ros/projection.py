@@ -65,11 +65,15 @@ class Projection:
     path_sent_at: float = -math.inf
     map_sent_at: float = -math.inf
     last_seq: int = -1
+    last_map_seq: int = -1
+    waiting: dict[int, tuple[int, tuple[float, float, float]]] = field(default_factory=dict)   # map poses before their grid pose
 
     def grid_pose(self, seq: int, stamp: int, pose, linear=(0.0, 0.0, 0.0), angular=(0.0, 0.0, 0.0),
                   increment_covariance=None) -> list[tuple[str, bytes]]:
         """`odom` and `/tf` odom → base_link of one grid-cell pose (x, y, heading)."""
-        if seq <= self.last_seq:   # a new run (seq went back): the odometry starts afresh
+        if seq in self.grid_poses:   # sent again (a stage replayed its outputs): already published
+            return []
+        if seq < self.last_seq:      # a new run (seq went back): the odometry starts afresh
             self.reset()
         self.last_seq = seq
         if self.odom_pose is not None and increment_covariance is not None:
@@ -80,19 +84,33 @@ class Projection:
             del self.grid_poses[next(iter(self.grid_poses))]
         x, y, heading = self.odom_pose
         rotation = yaw_quaternion(heading)
-        return [(ODOM, self.ros.odometry(stamp, ODOM_FRAME, BASE_FRAME, (x, y, 0.0), rotation,
-                                         planar_covariance_6x6(self.covariance), linear, angular)),
-                (TF, self.ros.transforms(stamp, [(ODOM_FRAME, BASE_FRAME, (x, y, 0.0), rotation)]))]
+        messages = [(ODOM, self.ros.odometry(stamp, ODOM_FRAME, BASE_FRAME, (x, y, 0.0), rotation,
+                                             planar_covariance_6x6(self.covariance), linear, angular)),
+                    (TF, self.ros.transforms(stamp, [(ODOM_FRAME, BASE_FRAME, (x, y, 0.0), rotation)]))]
+        if seq in self.waiting:   # its map pose came first (they reach the node by different routes)
+            messages.append(self._correction(*self.waiting.pop(seq), self.odom_pose))
+        return messages
+
+    def _correction(self, stamp: int, pose, odom) -> tuple[str, bytes]:
+        """/tf map → odom: T(map→base) · T(odom→base)⁻¹."""
+        correction = compose(pose, between(odom, (0.0, 0.0, 0.0)))
+        return TF, self.ros.transforms(stamp, [(MAP_FRAME, ODOM_FRAME, (correction[0], correction[1], 0.0),
+                                                yaw_quaternion(correction[2]))])
 
     def map_pose(self, seq: int, stamp: int, pose, experience: int) -> list[tuple[str, bytes]]:
         """`/tf` map → odom and `pose` of one map pose; the frame joins the path."""
         pose = tuple(float(v) for v in pose)
+        if seq <= self.last_map_seq and seq >= self.last_seq - RECENT_FRAMES:   # sent again: already placed
+            return []
+        self.last_map_seq = seq
         messages = []
         odom = self.grid_poses.get(seq)
         if odom is not None:
-            correction = compose(pose, between(odom, (0.0, 0.0, 0.0)))   # T(map→base) · T(odom→base)⁻¹
-            messages.append((TF, self.ros.transforms(stamp, [(MAP_FRAME, ODOM_FRAME, (correction[0], correction[1], 0.0),
-                                                              yaw_quaternion(correction[2]))])))
+            messages.append(self._correction(stamp, pose, odom))
+        else:
+            self.waiting[seq] = (stamp, pose)
+            while len(self.waiting) > RECENT_FRAMES:
+                del self.waiting[next(iter(self.waiting))]
         messages.append((POSE, self.ros.pose_with_covariance(stamp, MAP_FRAME, (pose[0], pose[1], 0.0),
                                                              yaw_quaternion(pose[2]),
                                                              planar_covariance_6x6(self.covariance))))
@@ -136,6 +154,8 @@ class Projection:
         self.covariance = np.zeros((3, 3))
         self.odom_pose = None
         self.grid_poses.clear()
+        self.waiting.clear()
+        self.last_map_seq = -1
         self.frames.clear()
         self.experiences.clear()
         self.map_state = MapState()
