@@ -153,13 +153,16 @@ class Ros2Source:
             log.warning("source: dropped on %s: %s (counted as %s; said once per key)", key, what, kind)
 
     def _image(self, role: str, key: str, msgtype: str, cdr: bytes) -> None:
+        message = self._decode(key, msgtype, cdr)   # (CDR only: the pixels are decoded for the frame taken)
+        if message is None:
+            return
         stamp = header_stamp_ns(cdr)
         with self._condition:
             if role == "image":
-                self._lefts.append((self._heard, stamp, msgtype, cdr, key))
+                self._lefts.append((self._heard, stamp, msgtype, message, key))
                 self._heard += 1
             else:
-                self._rights.append((stamp, msgtype, cdr, key))
+                self._rights.append((stamp, msgtype, message, key))
             pair = self._pair()
             if pair is not None:
                 if self._slot is not None:
@@ -176,14 +179,14 @@ class Ros2Source:
             self._lefts.clear()
             return newest + (None,)
         for index in range(len(self._lefts) - 1, -1, -1):
-            seq, stamp, msgtype, cdr, key = self._lefts[index]
+            seq, stamp, msgtype, message, key = self._lefts[index]
             right = min(self._rights, key=lambda r: abs(r[0] - stamp), default=None)
             if right is not None and abs(right[0] - stamp) <= self._tolerance_ns:
                 for _ in range(index + 1):
                     self._lefts.popleft()
                 while self._rights and self._rights[0][0] <= right[0]:
                     self._rights.popleft()
-                return seq, stamp, msgtype, cdr, key, right
+                return seq, stamp, msgtype, message, key, right
         return None
 
     # ----------------------------------------------------------------- the pipeline side
@@ -192,18 +195,13 @@ class Ros2Source:
         with self._condition:
             if not self._condition.wait_for(lambda: self._slot is not None or self._closed, timeout) or self._slot is None:
                 return None
-            (seq, stamp, msgtype, cdr, key, right), self._slot = self._slot, None
+            (seq, stamp, msgtype, message, key, right), self._slot = self._slot, None
             infos = dict(self._infos)
             odometry = list(self._odometry) if "odom" in self.topics else None
         images = []
-        for role, (kind, data, where) in (("image", (msgtype, cdr, key)), ("right", right[1:] if right else None)):
-            if role == "right" and right is None:
-                continue
-            message = self._decode(where, kind, data)
-            if message is None:
-                return None
+        for role, (kind, decoded, where) in [("image", (msgtype, message, key))] + ([("right", right[1:])] if right else []):
             try:
-                images.append(decode_image(message, kind, self.topics[role], self._grey))
+                images.append(decode_image(decoded, kind, self.topics[role], self._grey))
                 if len(images) == 2 and images[0].shape != images[1].shape:
                     raise SourceError(f"right image {images[1].shape[1]}×{images[1].shape[0]} does not match the left "
                                       f"{images[0].shape[1]}×{images[0].shape[0]}")
@@ -279,6 +277,8 @@ class Ros2Source:
                 continue
             last = frame.seq
             yield frame
+            if self._stop is not None and frame.seq + self._step >= self._stop:   # the last frame asked for
+                return
 
     def __len__(self) -> int:
         if self._stop is None:
