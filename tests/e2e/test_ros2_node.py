@@ -120,3 +120,66 @@ def test_nubot_run_is_a_ros2_node_heard_by_an_outside_rmw_zenoh_client(router, s
           f"{len(client.received['/tf'])} /tf messages, {len(client.received['/gridslam/path'])} paths, "
           f"{len(markers)} experience maps")
     assert path_error <= 0.01
+
+
+def test_kitti_clip_published_as_ros2_images_gives_the_folders_mono_odometry(router, shared_data, tmp_path):
+    """The client publishes the KITTI clip as sensor_msgs/Image + CameraInfo, one image after
+    the pipeline has handled the previous one (a live source keeps only the newest: paced, none
+    is dropped), and `--source ros2:` gives the mono odometry of the clip's folder."""
+    from schemas import GridPose
+    from services.common import codec, topics
+    from services.source import open_source
+    from tests.netutil import client_session
+
+    clip = shared_data / "kitti06_clip"
+    frames = open_source(f"kitti:{clip}", mono=True)
+    reference = tmp_path / "folder"
+    done = subprocess.run(GRIDSLAM + ["run", "--source", f"kitti:{clip}", "--egomotion", "mono", "--no-mapping",
+                                      "--no-mcap", "--out", str(reference)], cwd=REPO, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+
+    client = Client(router, tmp_path / "msgs")
+    session = client_session(router)
+    handled = []
+    subscriber = session.declare_subscriber(topics.key("robot0", "grid/pose"),
+                                            lambda s: handled.append(codec.decode(s.payload.to_bytes(), GridPose).header.seq))
+    out = tmp_path / "ros2"
+    run = subprocess.Popen(GRIDSLAM + ["run", "--source", "ros2:/kitti/image", "--camera-info-topic", "/kitti/camera_info",
+                                       "--egomotion", "mono", "--no-mapping", "--no-mcap", "--n-frames", str(len(frames)),
+                                       "--connect", endpoint(router), "--out", str(out)],
+                           cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        images = client.publisher("/kitti/image", "sensor_msgs/msg/Image")
+        info = client.publisher("/kitti/camera_info", "sensor_msgs/msg/CameraInfo")
+        T = images.session_mgr.store.types
+        # The source's subscription in the graph first: what is published before it is not heard.
+        wait_for(lambda: any("%kitti%image" in str(r.ok.key_expr) for r in session.liveliness().get(
+            "@ros2_lv/0/*/*/*/MS/**", timeout=1.0) if r.ok is not None), timeout=120)
+        camera = frames.camera
+        for index, frame in enumerate(frames):
+            sec, nanosec = divmod(int(round(frame.stamp * 1e9)), 1_000_000_000)
+            header = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id="camera")
+            height, width = frame.left.shape
+            projection = np.array([camera.fx, 0, camera.cx, 0, 0, camera.fy, camera.cy, 0, 0, 0, 1, 0], dtype=float)
+            info.publish(header=header, height=height, width=width, distortion_model="plumb_bob", d=np.zeros(5),
+                         k=np.array([camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1], dtype=float),
+                         r=np.eye(3).reshape(9), p=projection, binning_x=0, binning_y=0,
+                         roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+            time.sleep(0.05)
+            images.publish(header=header, height=height, width=width, encoding="mono8", is_bigendian=0, step=width,
+                           data=np.ascontiguousarray(frame.left).reshape(-1))
+            wait_for(lambda: index in handled, timeout=120)
+        stdout, stderr = run.communicate(timeout=300)
+        assert run.returncode == 0, stderr[-3000:]
+    finally:
+        if run.poll() is None:
+            run.kill()
+        subscriber.undeclare()
+        session.close()
+        client.close()
+    live, folder = read_tum(out / "egomotion.tum"), read_tum(reference / "egomotion.tum")
+    assert len(live) == len(folder) == len(frames)
+    error = np.abs(live.positions - folder.positions).max()
+    print(f"ros2:/kitti/image against kitti:{clip.name}: {len(live)} frames, largest egomotion difference {error:.2e}")
+    assert np.allclose(live.stamps, folder.stamps, atol=1e-6) and error <= 1e-9
