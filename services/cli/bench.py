@@ -17,6 +17,7 @@ BENCHMARKS: dict[str, str] = {
     "loopclosure": "services.loopclosure.bench",
     "mapping": "services.expmap.bench",
     "geometry": "services.loopclosure.geometry_bench",
+    "ros2": "services.ros.bench",
 }
 
 
