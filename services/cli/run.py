@@ -18,7 +18,8 @@ from services.source.spec import add_bag_arguments, add_world_arguments, bag_set
 
 def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--source", required=source_required,
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, rosbag:PATH or "
+                             "ros2:TOPIC")
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
     parser.add_argument("--egomotion-instances", type=int, metavar="N",
                         help="ego-motion processes sharing the frames (default 1; docs/pipeline.md)")

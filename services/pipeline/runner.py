@@ -73,7 +73,8 @@ class RunConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
+    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
+                                    "rosbag:PATH, ros2:TOPIC.")
     egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
         None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
