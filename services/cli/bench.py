@@ -18,6 +18,7 @@ BENCHMARKS: dict[str, str] = {
     "mapping": "services.expmap.bench",
     "geometry": "services.loopclosure.geometry_bench",
     "place-recognition": "services.benchmarks.place_recognition",
+    "ros2": "services.ros.bench",
 }
 
 

@@ -11,13 +11,15 @@ from services.common.config import load_config
 from services.common.runtime import DEFAULT_ROUTER
 from services.expmap.service import add_map_arguments
 from services.loopclosure.service import add_place_recognition_argument
+from services.ros.node import add_graph_arguments, graph_flags
 from services.source.service import add_fov_argument
 from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
 
 
 def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--source", required=source_required,
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
+                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, rosbag:PATH or "
+                             "ros2:TOPIC")
     parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
     parser.add_argument("--egomotion-instances", type=int, metavar="N",
                         help="ego-motion processes sharing the frames (default 1; docs/pipeline.md)")
@@ -53,6 +55,10 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     add_world_arguments(parser)
     parser.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
                         help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (default 8765; extra `foxglove`)")
+    parser.add_argument("--ros2", action="store_true", default=None,
+                        help="also run the ros2 service: the run as the node gridslam of a ROS 2 graph over Zenoh "
+                             "(rmw_zenoh; docs/ecosystem.md)")
+    add_graph_arguments(parser)
     parser.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
                         help="do not write run.mcap (nor keep the camera images for it)")
     add_bag_arguments(parser)
@@ -118,7 +124,7 @@ def run_flags(args) -> dict:
             "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
             "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,
             "map_optimizer": args.map_optimizer, "place_recognition": args.place_recognition, "world": parse_world_flags(args.world, args.laps) or None,
-            "mcap": args.mcap, "foxglove": args.foxglove, **bag_settings(args)}
+            "mcap": args.mcap, "foxglove": args.foxglove, "ros2": args.ros2, **graph_flags(args), **bag_settings(args)}
 
 
 def execute(args, **defaults) -> int:

@@ -18,6 +18,7 @@ SERVICES: dict[str, str] = {
     "expmap": "services.expmap.service",
     "viewer": "services.viewer.service",
     "foxglove": "services.ros.foxglove",
+    "ros2": "services.ros.node",
 }
 
 

@@ -37,6 +37,7 @@ from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
+from services.ros.rmw_zenoh import DISTROS, KEY_STYLES
 from services.source.service import SourceConfig
 from services.source.spec import bag_settings, open_source
 
@@ -67,7 +68,8 @@ class RunConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
+    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
+                                    "rosbag:PATH, ros2:TOPIC.")
     egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
         None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
@@ -112,6 +114,11 @@ class RunConfig(BaseModel):
                                           "preset's and the config file's [source] keys.")
     mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
     foxglove: int | None = Field(None, ge=0, le=65535, description="Also serve the run live to Foxglove on this port (loopback).")
+    ros2: bool = Field(False, description="Also run the ros2 service: the run as a node of a ROS 2 graph over Zenoh (docs/ecosystem.md).")
+    ros_domain_id: int | None = Field(None, ge=0, le=232, description="ROS 2 domain of the ros2 service and of a ros2: source.")
+    ros_namespace: str | None = Field(None, description="ROS namespace of the ros2 service's node (default /gridslam).")
+    ros_distro: Literal[DISTROS] | None = Field(None, description="ROS 2 distribution of the graph (default jazzy).")
+    ros2_keys: Literal[KEY_STYLES] | None = Field(None, description="rmw_zenoh's keys (default) or zenoh-bridge-ros2dds'.")
     image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
     right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
     camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
@@ -316,6 +323,8 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--http", config.view]
     if name == "foxglove":
         args += ["--port", str(config.foxglove)]
+    if name == "ros2":
+        args += graph_args(config)
     if name == "loopclosure":
         args += ["--store", str(folder / TEMPLATE_LOG)]
         args += ["--place-recognition", config.place_recognition] if config.place_recognition else []
@@ -324,6 +333,15 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--map-optimizer", config.map_optimizer] if config.map_optimizer else []
     if name in ("loopclosure", "expmap") and config.closure:
         args += ["--closure", config.closure]
+    return args
+
+
+def graph_args(config: RunConfig) -> list[str]:
+    """The ROS 2 graph flags given to the run, for the ros2 service and a ros2: source."""
+    args = []
+    for name in ("ros_domain_id", "ros_namespace", "ros_distro", "ros2_keys"):
+        value = getattr(config, name)
+        args += [f"--{name.replace('_', '-')}", str(value)] if value is not None else []
     return args
 
 
@@ -348,6 +366,8 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
         args += ["--world", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
     for key, value in bag_settings(config).items():
         args += [f"--{key.replace('_', '-')}", str(value)] if value is not None else []
+    if config.source.startswith("ros2:"):
+        args += graph_args(config)
     return args + (["--stop", str(stop)] if stop is not None else [])
 
 
@@ -417,7 +437,9 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         if config.connect is None:
             router = supervisor.start("router", ["router", "--listen", config.listen])
             wait_port_open(config.listen, router.process)
-        for name in stages + (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []):
+        observers = (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []) + \
+            (["ros2"] if config.ros2 else [])
+        for name in stages + observers:
             supervisor.start(name, service_args(config, name, folder))
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
         with Recorder(runtime, camera_images=config.mcap) as recorder:

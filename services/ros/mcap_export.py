@@ -36,6 +36,20 @@ MARKER_PERIOD_S = 1.0
 # /gridslam/map is the pose expmap published at each frame.
 STAGE_FILES = {"egomotion": "egomotion", "gridcells": "gridcells", "map": "map_online", "groundtruth": "groundtruth"}
 CHUNK_BYTES = 4 * 1024 * 1024
+# The MCAP ros2 profile's channel metadata `offered_qos_profiles`, as rosbag2 writes it (YAML,
+# rmw's enums: history 3 unknown, reliability 1 reliable, durability 1 transient_local or 2
+# volatile, liveliness 1 automatic, infinite durations): without it `ros2 bag play` offers every
+# topic as volatile, and a static-transform listener never gets /tf_static.
+LATCHED_TOPICS = ("/tf_static",)
+_INFINITE = "{sec: 2147483647, nsec: 4294967295}"
+
+
+def offered_qos_profiles(topic: str) -> str:
+    """The YAML of one channel's offered QoS profile (a list of one)."""
+    durability = 1 if topic in LATCHED_TOPICS else 2
+    return (f"- history: 3\n  depth: 0\n  reliability: 1\n  durability: {durability}\n  deadline: {_INFINITE}\n"
+            f"  lifespan: {_INFINITE}\n  liveliness: 1\n  liveliness_lease_duration: {_INFINITE}\n"
+            "  avoid_ros_namespace_conventions: false\n")
 
 
 class McapExportError(DataError):
@@ -110,7 +124,8 @@ def write_run_mcap(path: Path, content: RunContent) -> dict[str, int]:
                 msgtype = TOPICS[topic]
                 if msgtype not in schemas:
                     schemas[msgtype] = writer.register_schema(msgtype, "ros2msg", ros.msgdef(msgtype).encode())
-                channel = channels[topic] = writer.register_channel(topic, "cdr", schemas[msgtype])
+                channel = channels[topic] = writer.register_channel(
+                    topic, "cdr", schemas[msgtype], metadata={"offered_qos_profiles": offered_qos_profiles(topic)})
             writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp, sequence=number)
             counts[topic] = counts.get(topic, 0) + 1
         if content.metadata:

@@ -68,7 +68,7 @@ class _SourceSettings(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     source: str = Field(description="What to read: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
-                                    "rosbag:PATH.")
+                                    "rosbag:PATH, ros2:TOPIC.")
     preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic, campus, "
                                                   "irat, or a preset file (docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
@@ -154,8 +154,11 @@ class SourceService(Service):
     name = "source"
     idle_timeout = 0.0
 
-    def __init__(self, runtime: RuntimeConfig, config: SourceConfig, frames: FrameSource, instance: str | None = None):
+    def __init__(self, runtime: RuntimeConfig, config: SourceConfig, frames: FrameSource, instance: str | None = None,
+                 graph=None):
         super().__init__(runtime, instance)
+        self.graph = graph          # GraphParams of a ros2: source (the ROS 2 graph it listens to)
+        self.ros_node = None
         self.config = config
         self.frames = frames
         self.live = bool(getattr(frames, "live", False))
@@ -186,6 +189,8 @@ class SourceService(Service):
         self.ready: CameraFrame | None = None       # the next frame, read ahead while the window is full
 
     def setup(self) -> None:
+        if hasattr(self.frames, "subscriptions"):
+            self._listen_to_ros2()
         if self.window:
             if self.config.ack_topic not in TOPICS:
                 raise ValueError(f"ack_topic {self.config.ack_topic!r} is not a pipeline topic")
@@ -194,6 +199,37 @@ class SourceService(Service):
             # Frames in flight when the router died are lost with it: send them again as soon as
             # the consumers are reachable, instead of waiting for `resend_after` (issue 7).
             self._entities.append(self.publisher("camera/frame").declare_matching_listener(self._on_matching))
+
+    def _listen_to_ros2(self) -> None:
+        """A ros2: source: subscribe to its topics as the node `source` of the ROS 2 graph (graph.py)."""
+        from services.ros.graph import RosNode
+        from services.ros.messages import RosMessages
+        from services.ros.rmw_zenoh import RELIABLE_QOS, SENSOR_QOS, WireError, normalise_namespace, parse_attachment
+
+        p = self.graph
+        ros = RosMessages(p.ros_distro)
+        self.ros_node = RosNode(self.session, "source", normalise_namespace(p.ros_namespace), p.ros_domain_id,
+                                p.ros_distro, p.ros2_keys, hashes=ros.rihs01)
+        rmw_keys = p.ros2_keys == "rmw_zenoh"
+        for role, topic, types in self.frames.subscriptions():
+            def on_sample(key, msgtype, cdr, attachment, role=role):
+                attached = None
+                if rmw_keys:
+                    try:
+                        parse_attachment(attachment)
+                        attached = True
+                    except WireError:
+                        attached = False
+                self.frames.on_sample(role, key, msgtype, cdr, attached)
+
+            self.ros_node.subscription(topic, types, SENSOR_QOS if role in ("image", "right") else RELIABLE_QOS, on_sample)
+        self.frames.bind(self._stop)
+        log.info("source: listening to %s (ROS domain %d, %s keys)", ", ".join(self.frames.topics.values()),
+                 p.ros_domain_id, p.ros2_keys)
+
+    def teardown(self) -> None:
+        if self.ros_node is not None:
+            self.ros_node.close()
 
     def _on_matching(self, status) -> None:   # a Zenoh thread
         if not status.matching:
@@ -372,6 +408,8 @@ class SourceService(Service):
         if self.live:
             extra["frames_dropped"] = getattr(self.frames, "frames_dropped", 0)
             extra["frames_abandoned"] = self.abandoned
+        for kind, count in getattr(self.frames, "counters", {}).items():   # a ros2: source's bad input
+            extra[f"ros2_{kind}"] = count
         return {**super().extra_counters(), **extra}
 
     def _pipeline_ready(self) -> bool:
@@ -408,8 +446,8 @@ class SourceService(Service):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or "
-                                         "rosbag:PATH")
+    parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
+                                         "rosbag:PATH or ros2:TOPIC")
     parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, irat, or a preset file")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file")
     add_fov_argument(parser)
@@ -435,6 +473,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start where the running services are (a source restarted mid-run)")
     add_world_arguments(parser)
     add_bag_arguments(parser)
+    from services.ros.node import add_graph_arguments
+
+    add_graph_arguments(parser)
 
 
 def add_fov_argument(parser: argparse.ArgumentParser) -> None:
@@ -455,4 +496,9 @@ def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
                          calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world(),
                          topics=bag_settings(config), fov=config.fov)
-    return SourceService(runtime, config, frames, args.instance).run()
+    graph = None
+    if config.source.startswith("ros2:"):
+        from services.ros.node import Ros2Config, graph_flags, graph_params, load_graph_config
+
+        graph = graph_params(load_graph_config(Ros2Config, graph_flags(args), args.config))
+    return SourceService(runtime, config, frames, args.instance, graph=graph).run()

@@ -189,3 +189,18 @@ def test_the_foxglove_server_says_in_one_line_that_its_port_is_taken():
         assert set(service.channels) == set(TOPICS)
     finally:
         service.server.stop()
+
+
+def test_every_channel_offers_its_qos_and_tf_static_is_latched(tmp_path):
+    # The MCAP ros2 profile's offered_qos_profiles, read back as `ros2 bag play` would: without
+    # it /tf_static is replayed volatile and static-transform listeners never get it.
+    path = tmp_path / "run.mcap"
+    write_run_mcap(path, content())
+    with open(path, "rb") as stream:
+        channels = make_reader(stream).get_summary().channels.values()
+    profiles = {channel.topic: channel.metadata.get("offered_qos_profiles", "") for channel in channels}
+    assert profiles and all(profile.startswith("- history: 3\n") for profile in profiles.values()), profiles
+    durability = {topic: [line for line in profile.splitlines() if "durability" in line][0].split(":")[1].strip()
+                  for topic, profile in profiles.items()}
+    assert durability.pop("/tf_static") == "1"                       # TRANSIENT_LOCAL
+    assert set(durability.values()) == {"2"}                          # VOLATILE
