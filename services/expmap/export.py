@@ -23,7 +23,7 @@ from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.graph import ExperienceMap, MapParams
-from services.expmap.store import FORMAT, VERSION, Step, parse_records, rebuild
+from services.expmap.store import FORMAT, VERSION, Step, parse_records, rebuild, sessions_of
 
 log = logging.getLogger(__name__)
 
@@ -44,10 +44,11 @@ class MapLog:
     steps: list[Step]
     torn_last_record: bool = False
     checkpoints: list[int] = field(default_factory=list)   # after how many steps the map was rebased
+    sessions: list[tuple[int, dict]] = field(default_factory=list)   # where each later session began
 
     def rebuild(self) -> ExperienceMap:
         """The map: from the log's checkpoint file and the steps after it, or from all its steps."""
-        return rebuild(self.path, self.params, self.steps, self.checkpoints)[0]
+        return rebuild(self.path, self.params, self.steps, self.checkpoints, sessions=self.sessions)[0]
 
 
 def read_log(path, params: MapParams | None = None) -> MapLog:
@@ -73,7 +74,7 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
         steps, checkpoints = parse_records(records[1:])
     except ValueError as error:
         raise MapExportError(f"{path}: {error}") from None
-    return MapLog(path, logged, steps, torn, checkpoints)
+    return MapLog(path, logged, steps, torn, checkpoints, sessions_of(records[1:]))
 
 
 def graph_dict(experience_map: ExperienceMap) -> dict:

@@ -55,7 +55,9 @@ class PoseGraph:
         self.map = experience_map
         self.isam = self._new_isam()
         self.covariances: list[np.ndarray] = []   # of each of the map's links, in its order
-        self._prior: tuple[float, float, float] | None = None
+        # The first experience of each part of the graph → its prior (pose, std dev): firm for a part
+        # on its own, weak once closures joined it (it then only keeps the solve determinate).
+        self._priors: dict[int, tuple[tuple[float, float, float], float]] = {}
         self._factors = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
         self._solved = 0                    # experiences 0.._solved-1 are in the solver
@@ -77,15 +79,21 @@ class PoseGraph:
         return self.gtsam.ISAM2(params)
 
     # --- building ---------------------------------------------------------------------------------
-    def add_experience(self, index: int, pose) -> None:
+    def add_experience(self, index: int, pose, anchor: bool = False) -> None:
+        """A new experience; ``anchor`` (or the first): it starts a part of the graph, held where
+        its pose is by a prior."""
         self._values.insert(index, self.gtsam.Pose2(*pose))
-        if index == 0:
-            self._prior = tuple(pose)
-            self._factors.add(self._prior_factor())
+        if index == 0 or anchor:
+            self._priors[index] = (tuple(pose), PRIOR_SIGMA)
+            self._factors.add(self._prior_factor(index))
 
     def add_link(self, link: Link, covariance: np.ndarray) -> None:
         self.covariances.append(covariance)
         self._factors.add(self._factor(link, self.gtsam.noiseModel.Gaussian.Covariance(covariance)))
+
+    def add_refused(self, covariance: np.ndarray) -> None:
+        """A closure link kept as evidence only, refused without a test (it joined nothing)."""
+        self.covariances.append(covariance)
 
     def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, float]:
         """Test a closure against the graph and keep it when it passes; (accepted, test statistic
@@ -139,9 +147,9 @@ class PoseGraph:
         noise = self.gtsam.noiseModel.Gaussian.Covariance(covariance)
         return self._factor(link, noise if self._kernel is None else self.gtsam.noiseModel.Robust.Create(self._kernel, noise))
 
-    def _prior_factor(self):
-        noise = self.gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)
-        return self.gtsam.PriorFactorPose2(0, self.gtsam.Pose2(*self._prior), noise)
+    def _prior_factor(self, key: int):
+        pose, sigma = self._priors[key]
+        return self.gtsam.PriorFactorPose2(key, self.gtsam.Pose2(*pose), self.gtsam.noiseModel.Isotropic.Sigma(3, sigma))
 
     # --- rebuilding -------------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:
@@ -149,7 +157,10 @@ class PoseGraph:
         experience not yet in the solver), the prior, the links' covariances, the refresh plan."""
         solved = self.gtsam.utilities.extractPose2(self.isam.getLinearizationPoint()) if self._solved else np.zeros((0, 3))
         pending = range(self._solved, len(self.map))   # the next update would have refreshed them
-        return {"theta": np.concatenate([solved, self.map.poses[self._solved:]]), "prior": np.array(self._prior),
+        priors = np.array([(key, *pose, sigma) for key, (pose, sigma) in sorted(self._priors.items())],
+                          dtype=float).reshape(-1, 5)
+        return {"theta": np.concatenate([solved, self.map.poses[self._solved:]]), "prior": priors[0, 1:4],
+                "part_priors": priors[1:],
                 "covariances": np.array(self.covariances, dtype=float).reshape(-1, 3, 3),
                 "refresh": np.array(sorted(self._refresh.union(pending)), dtype=np.int64),
                 "refresh_cursor": np.array(self._cursor, dtype=np.int64)}
@@ -164,9 +175,11 @@ class PoseGraph:
         theta, covariances = state["theta"], state["covariances"]
         if len(theta) != len(self.map) or len(covariances) != len(self.map.links):
             raise ValueError("solver state of another map size")
-        self._prior = tuple(float(v) for v in state["prior"])
+        self._priors = {0: (tuple(float(v) for v in state["prior"]), PRIOR_SIGMA)}
+        for key, x, y, heading, sigma in state.get("part_priors", np.zeros((0, 5))):
+            self._priors[int(key)] = ((float(x), float(y), float(heading)), float(sigma))
         self.covariances = list(covariances)
-        factors = [(0, self._prior_factor())]   # (the newest experience it links, factor)
+        factors = [(key, self._prior_factor(key)) for key in self._priors]   # (the newest experience it links, factor)
         for link, covariance in zip(self.map.links, self.covariances):
             if link.accepted:
                 factors.append((max(link.source, link.target), self._closure_factor(link, covariance) if link.loop_closure
@@ -239,7 +252,7 @@ class Relaxation:
         self._degree = np.zeros(64)
         self.updates = 0   # relaxations since the arrays were (re)built
 
-    def add_experience(self, index: int, pose) -> None:
+    def add_experience(self, index: int, pose, anchor: bool = False) -> None:
         if index >= len(self._degree):
             self._degree = np.concatenate([self._degree, np.zeros_like(self._degree)])
 
@@ -256,6 +269,9 @@ class Relaxation:
     def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, None]:
         self.add_link(link)
         return True, None
+
+    def add_refused(self, covariance: np.ndarray) -> None:
+        pass
 
     def state(self) -> dict[str, np.ndarray]:
         return {}   # the map's poses and links are all there is
