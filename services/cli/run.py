@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from services.common.config import load_config
+from services.common.layout import add_map_reuse_arguments
 from services.common.runtime import DEFAULT_ROUTER
 from services.expmap.service import add_map_arguments
 from services.loopclosure.service import add_place_recognition_argument
@@ -50,6 +51,7 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
                         help="skip loop closure and the experience map")
     add_map_arguments(parser)
     add_place_recognition_argument(parser)
+    add_map_reuse_arguments(parser)
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
                         help="also serve the live viewer (default 127.0.0.1:8080)")
     add_world_arguments(parser)
@@ -123,7 +125,8 @@ def run_flags(args) -> dict:
             "preset": args.preset, "calibration": args.calibration, "fov": args.fov, "camera_height": args.camera_height, "config_file": args.config, "n_frames": args.n_frames,
             "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
             "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,
-            "map_optimizer": args.map_optimizer, "place_recognition": args.place_recognition, "world": parse_world_flags(args.world, args.laps) or None,
+            "map_optimizer": args.map_optimizer, "place_recognition": args.place_recognition,
+            "map": args.map, "localize": args.localize, "world": parse_world_flags(args.world, args.laps) or None,
             "mcap": args.mcap, "foxglove": args.foxglove, "ros2": args.ros2, **graph_flags(args), **bag_settings(args)}
 
 

@@ -39,3 +39,12 @@ def map_files(folder: Path) -> dict[str, Path]:
     """The files of the map a results folder holds, by role."""
     folder = Path(folder)
     return {"places": folder / TEMPLATE_LOG, "keyframes": folder / KEYFRAMES, "map": folder / MAP_LOG}
+
+
+def add_map_reuse_arguments(parser) -> None:
+    """--map DIR and --localize, shared by run, demo and the loopclosure and expmap services."""
+    parser.add_argument("--map", type=Path, metavar="DIR",
+                        help="start from the map of an earlier run's results folder DIR (read only): this run is its next "
+                             "session, its results the whole map")
+    parser.add_argument("--localize", action="store_true", default=None,
+                        help="with --map: localise on the map only, store nothing new")

@@ -190,11 +190,13 @@ class Service:
 
         self._entities.append(self.session.declare_subscriber(topics.key(self.robot, topic), on_sample))
 
-    def queryable(self, topic: str, answer: Callable[[], Message]) -> None:
-        """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only)."""
+    def queryable(self, topic: str, answer: Callable[..., Message], parameters: bool = False) -> None:
+        """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only);
+        with `parameters`, `answer(get)`, `get(name)` giving the selector's parameter or None. An
+        answer that raises a GridslamError replies with its one line as an error."""
         assert self.session is not None, "queryable() belongs in setup()"
         key = topics.key(self.robot, topic)
-        self._entities.append(self.session.declare_queryable(key, lambda query: self._reply(query, key, answer)))
+        self._entities.append(self.session.declare_queryable(key, lambda query: self._reply(query, key, answer, parameters)))
 
     def publish(self, topic: str, message: Message) -> None:
         """Publish a pipeline message on `topic` (congestion control BLOCK: offline replay loses nothing).
@@ -512,12 +514,14 @@ class Service:
             except queue.Full:
                 continue
 
-    def _reply(self, query: zenoh.Query, key: str, answer: Callable[[], Message]) -> None:
+    def _reply(self, query: zenoh.Query, key: str, answer: Callable[..., Message], parameters: bool) -> None:
         # Reply on our own key, not the query's (which may hold wildcards): replies on one key
         # would be consolidated into one.
         try:
-            message = answer()
+            message = answer(query.parameters.get) if parameters else answer()
             query.reply(key, codec.encode(message), encoding=zenoh.Encoding(codec.encoding_of(message)))
+        except GridslamError as error:   # a bad request: the querier is told why
+            query.reply_err(str(error))
         except Exception:  # a failing answer must not kill Zenoh's thread; the querier times out
             log.exception("%s: query on %s failed", self.name, query.key_expr)
 

@@ -28,7 +28,7 @@ from services.expmap.store import FORMAT, VERSION, Step, parse_records, rebuild,
 log = logging.getLogger(__name__)
 
 GRAPH_FORMAT = "gridslam-experience-graph"
-GRAPH_VERSION = 2
+GRAPH_VERSION = 3   # 3: parts of the graph (sessions)
 
 
 class MapExportError(DataError):
@@ -78,17 +78,22 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
 
 
 def graph_dict(experience_map: ExperienceMap) -> dict:
-    """The map as a graph: experiences (final map pose, template, frame of creation) and links
-    (transform from source to target, the frame that made it, loop_closure, and accepted: false
-    for a closure the map refused)."""
+    """The map as a graph: experiences (final map pose, template, frame of creation, the part of
+    the graph it is in: 0 for the map's frame, another for a later session no closure joined to
+    it yet, whose poses are then in its own frame) and links (transform from source to target,
+    the frame that made it, loop_closure, and accepted: false for a closure the map refused);
+    `parts` lists the parts, `connected` says whether there is just one."""
     poses = experience_map.final_poses()
     return {
         "format": GRAPH_FORMAT,
         "version": GRAPH_VERSION,
         "params": asdict(experience_map.params),
         "frames": len(experience_map.frames),
+        "parts": sorted(experience_map.anchors),
+        "connected": len(experience_map.anchors) == 1,
         "experiences": [{"id": i, "x": float(x), "y": float(y), "heading": float(heading),
-                         "template_id": experience_map.templates[i], "frame": experience_map.created[i]}
+                         "template_id": experience_map.templates[i], "frame": experience_map.created[i],
+                         "part": experience_map.parts[i]}
                         for i, (x, y, heading) in enumerate(poses)],
         "links": [asdict(link) for link in experience_map.links],
     }
@@ -122,6 +127,7 @@ class ExportResult:
         links = self.experience_map.links
         return {"frames": len(self.map_log.steps), "experiences": len(self.experience_map), "links": len(links),
                 "loop_closure_links": sum(link.loop_closure for link in links),
+                "sessions": 1 + len(self.map_log.sessions), "parts": len(self.experience_map.anchors),
                 "torn_last_record": self.map_log.torn_last_record}
 
 

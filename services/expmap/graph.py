@@ -216,6 +216,7 @@ IDENTITY = (0.0, 0.0, 0.0)
 # consistency rule's window is ten frames).
 RECENT_COVARIANCES = 64
 JOINED_PRIOR_SIGMA = 1e3   # the prior a joined part keeps (m, rad): it only keeps the solve determinate
+JOIN_WINDOW = 10           # frames whose closures between two parts are weighed together (the rule's window)
 
 
 class ExperienceMap:
@@ -241,6 +242,7 @@ class ExperienceMap:
         self.parts: list[int] = []                      # the part of the graph each experience is in (0: the map's frame)
         self.anchors: dict[int, int] = {0: 0}           # each part → its first experience
         self._new_part = False                          # the next frame starts a part (a new session)
+        self._joining: list[tuple] = []                 # recent placements of a part in another's frame (_join)
         self.localizer = None                           # a localisation session on this map (localizer.py)
         from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
         self.optimizer = PoseGraph(self) if params.optimizer == "gtsam" else Relaxation(self)
@@ -358,35 +360,41 @@ class ExperienceMap:
 
     def _join(self, across: list, result: FrameResult) -> None:
         """Closures between two parts of the graph: each says where its frame's part is in the
-        other part's frame. When `join_closures` of them agree (within `join_gate` standard
-        deviations), the younger part is moved there, its prior dropped, and the closures are
-        tested and kept as any other; otherwise they are refused, kept as evidence."""
+        other part's frame. When `join_closures` of those of the last JOIN_WINDOW frames agree
+        (within `join_gate` standard deviations), the younger part is moved there (its prior
+        made weak) and this frame's closures are tested and kept as any other; until then they
+        are refused, kept as evidence. A closure to a place with a look-alike (an experience of a
+        closure the map refused) joins nothing."""
+        frame = result.frame
+        self._joining = [entry for entry in self._joining if entry[0] > frame - JOIN_WINDOW]
+        aliased = self.aliased()
         placements = []
-        for closure, source, offset, covariance, target, matched_offset, frame in across:
+        for closure, source, offset, covariance, target, matched_offset, link_frame in across:
             measurement, link_covariance = self._measurement(closure, target, matched_offset, offset, source, covariance)
-            link = self._closure_link(source, target, offset, measurement, matched_offset, frame)
+            link = self._closure_link(source, target, offset, measurement, matched_offset, link_frame)
+            placements.append((closure, link, link_covariance))
+            if {source, target} & aliased:
+                continue
             # Where the source experience is in the target's part, and so the transform of its part.
             implied = compose(tuple(self._poses[target]), inverse(link.transform))
             moved_part, fixed_part = sorted((self.parts[source], self.parts[target]), reverse=True)
             transform = compose(implied, inverse(tuple(self._poses[source])))
             if moved_part != self.parts[source]:   # the target's part is the younger: move it the other way
                 transform = inverse(transform)
-            placements.append((closure, link, link_covariance, moved_part, fixed_part, transform))
-        # A closure to a place with a look-alike (an experience of a closure the map refused) joins nothing.
-        aliased = self.aliased()
-        usable = [i for i, (_, link, *_rest) in enumerate(placements) if not {link.source, link.target} & aliased]
+            self._joining.append((frame, transform, link_covariance, moved_part, fixed_part))
         best: list[int] = []
-        for i in usable:
-            _, _, covariance_i, moved_i, fixed_i, transform_i = placements[i]
-            agreeing = [j for j in usable if placements[j][3:5] == (moved_i, fixed_i) and _mahalanobis(
-                transform_i, placements[j][5], covariance_i + placements[j][2]) <= self.params.join_gate]
+        for i, (_, transform_i, covariance_i, moved_i, fixed_i) in enumerate(self._joining):
+            agreeing = [j for j, (_, transform_j, covariance_j, moved_j, fixed_j) in enumerate(self._joining)
+                        if (moved_j, fixed_j) == (moved_i, fixed_i)
+                        and _mahalanobis(transform_i, transform_j, covariance_i + covariance_j) <= self.params.join_gate]
             if len(agreeing) > len(best):
                 best = agreeing
         if len(best) >= self.params.join_closures:
-            _, _, _, moved_part, fixed_part, transform = placements[best[0]]
+            _, transform, _, moved_part, fixed_part = self._joining[best[0]]
             self._move_part(moved_part, fixed_part, transform)
+            self._joining = [entry for entry in self._joining if moved_part not in entry[3:5]]
             result.joined.append(moved_part)
-        for closure, link, covariance, _, _, _ in placements:
+        for closure, link, covariance in placements:
             decided = FrameResult(link.frame, -1, IDENTITY)
             if self.parts[link.source] == self.parts[link.target]:
                 # Composed anew: the moved part's poses changed, not the measurement.
@@ -486,6 +494,8 @@ class ExperienceMap:
                 "parts": np.array(self.parts, dtype=np.int64),
                 "anchors": np.array(sorted(self.anchors.items()), dtype=np.int64).reshape(-1, 2),
                 "new_part": np.array(self._new_part),
+                "joining": np.array([(f, *t, *c.ravel(), moved, fixed) for f, t, c, moved, fixed in self._joining],
+                                    dtype=float).reshape(-1, 15),
                 **self.optimizer.state()}
 
     @classmethod
@@ -529,6 +539,8 @@ class ExperienceMap:
         self.parts = [int(v) for v in state["parts"]] if "parts" in state else [0] * len(self.templates)
         self.anchors = {int(p): int(e) for p, e in state["anchors"]} if "anchors" in state else {0: 0}
         self._new_part = bool(state["new_part"]) if "new_part" in state else False
+        self._joining = [(int(row[0]), tuple(row[1:4]), np.array(row[4:13]).reshape(3, 3), int(row[13]), int(row[14]))
+                         for row in state.get("joining", np.zeros((0, 15)))]
         if len(self.parts) != len(self.templates):
             raise ValueError("experience parts of another map size")
         if len(self.residuals) != len(self.decisions):

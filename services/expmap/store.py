@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.common.journal import Journal, JournalError
+from services.common.journal import SESSION, Journal, JournalError
 from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams
 
 log = logging.getLogger(__name__)
@@ -105,7 +105,6 @@ class CheckpointPolicy:
         return 0 < self.updates <= experience_map.optimizer.updates and steps_since >= self.min_steps
 
 
-SESSION = "session"         # the journal record {"session": k, "localize": ..., "map": ...}: later frames are session k's
 
 
 def sessions_of(records: list[dict]) -> list[tuple[int, dict]]:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import shutil
 import struct
 import zlib
 from pathlib import Path
@@ -165,6 +166,18 @@ class KeyframeStore:
         self._size = self._load()
         self._cache = collections.OrderedDict((k, v) for k, v in self._cache.items() if k < count)
         return len(dropped)
+
+    def copy_from(self, path: Path) -> None:
+        """Take the keyframes of another store (a saved map's, checked with check_file) as this
+        one's, replacing what it holds."""
+        self._file.close()
+        try:
+            shutil.copyfile(path, self.path)
+            self._file = open(self.path, "a+b", buffering=0)
+        except OSError as error:
+            raise JournalError(f"{self.path}: cannot copy {path} ({error.strerror or error})") from None
+        self._cache.clear()
+        self._size = self._load()
 
     def close(self) -> None:
         if self._file.closed:

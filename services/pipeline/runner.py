@@ -9,6 +9,7 @@ restarting any service that dies → query statuses and the map → stop everyth
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import os
 import signal
@@ -25,12 +26,15 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
-from services.common.layout import CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG
+from services.common.journal import SESSION
+from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, map_files,
+                                     session_base)
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
 from services.egomotion import ESTIMATORS
 from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
-from services.expmap.export import corrected_trajectory, read_log
+from services.evaluation.trajectory import read_tum
+from services.expmap.export import read_log
 from services.loopclosure.places import PLACE_RECOGNITIONS
 from services.pipeline.assumptions import assess
 from services.pipeline.recorder import Recorder
@@ -104,6 +108,10 @@ class RunConfig(BaseModel):
                           "default: the services' (metric).")
     map_optimizer: Literal["gtsam", "ratslam"] | None = Field(
         None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
+    map: Path | None = Field(
+        None, description="Start from the map an earlier run left in this results folder (read only); this run is its next "
+                          "session, and its own results folder holds the whole map.")
+    localize: bool = Field(False, description="With map: localise on the saved map only, adding nothing to it.")
     place_recognition: Literal[PLACE_RECOGNITIONS] | None = Field(
         None, description="How loop closure recognises places: scanline, bow or sequence; default: the loopclosure's "
                           "(its preset's, or bow).")
@@ -333,6 +341,8 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--map-optimizer", config.map_optimizer] if config.map_optimizer else []
     if name in ("loopclosure", "expmap") and config.closure:
         args += ["--closure", config.closure]
+    if name in ("loopclosure", "expmap") and config.map is not None:
+        args += ["--map", str(config.map)] + (["--localize"] if config.localize else [])
     return args
 
 
@@ -348,7 +358,7 @@ def graph_args(config: RunConfig) -> list[str]:
 def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
-            "--source", config.source, "--start", str(start), "--origin", str(config.start), "--step", str(config.step),
+            "--source", config.source, "--start", str(start), "--origin", str(origin_of(config)), "--step", str(config.step),
             "--window", str(source_window(config)), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
     if config.egomotion_instances > 1:
         # Instances work in parallel only on blocks already sent: a window fitted to one frame's
@@ -369,6 +379,34 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     if config.source.startswith("ros2:"):
         args += graph_args(config)
     return args + (["--stop", str(stop)] if stop is not None else [])
+
+
+def origin_of(config: RunConfig) -> int:
+    """The frame whose pose is the ground truth's origin: the run's first, or on a saved map of
+    the same source the first of the run that made the map (so that its frame is the truth's)."""
+    if config.map is not None:
+        try:
+            saved = json.loads((config.map / CONFIG).read_text())
+        except (OSError, ValueError):
+            return config.start
+        if saved.get("source") == config.source and isinstance(saved.get("start"), int):
+            return saved["start"]
+    return config.start
+
+
+def check_saved_map(config: RunConfig) -> None:
+    """A run on a saved map fails at once, in one line, when the map is not there."""
+    if config.localize and config.map is None:
+        raise ConfigError("--localize needs a saved map to localise on: --map DIR")
+    if config.map is None:
+        return
+    if not config.mapping:
+        raise ConfigError("--map needs the map stage (drop --no-mapping)")
+    if not config.map.is_dir():
+        raise ConfigError(f"{config.map}: no such results folder (--map DIR: the folder of an earlier run)")
+    missing = [path.name for path in map_files(config.map).values() if not path.is_file()]
+    if missing:
+        raise ConfigError(f"{config.map}: no saved map there (missing {', '.join(missing)})")
 
 
 def source_settings(config: RunConfig) -> SourceConfig:
@@ -409,6 +447,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     A folder that holds an earlier run is refused, or cleared first with `overwrite`: its
     services would resume that run's state instead of starting afresh."""
     stop_event = stop_event or threading.Event()
+    check_saved_map(config)
     if config.connect is None:
         check_port_free(config.listen)
     if config.foxglove is not None:   # fail now, in one line, rather than lose the live view quietly
@@ -453,18 +492,33 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         supervisor.stop([n for n in supervisor.children if n != "router"])
         supervisor.stop(["router"])
     if (folder / MAP_LOG).exists():
-        map_log = read_log(folder / MAP_LOG)
-        experience_map = map_log.rebuild()
-        final = corrected_trajectory(experience_map, map_log.steps)
-        x, y, heading = final.planar()
-        recording.final_map = {step.frame: (x[i], y[i], heading[i]) for i, step in enumerate(map_log.steps)}
-        recording.map_decisions = experience_map.decisions
+        final_map(folder, config, recording)
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
     result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
     if config.mcap:
         result["summary"]["run_mcap"] = write_after_run(folder, recording, trajs, config)
     write_report(folder, recording, result, trajs)
     return RunResult(folder, result)
+
+
+def final_map(folder: Path, config: RunConfig, recording) -> None:
+    """This run's frames placed on the final map, and the map's decisions on its closures, into
+    the recording; on a saved map, only this session's frames (a localisation's: the poses it
+    published, since it changes no map), and the saved sessions' true positions to judge them."""
+    map_log = read_log(folder / MAP_LOG)
+    experience_map = map_log.rebuild()
+    base = session_base(map_log.sessions[-1][1][SESSION]) if map_log.sessions else 0
+    recording.frame_base = base
+    recording.whole_map = {frame: (x, y, heading) for frame, x, y, heading in experience_map.trajectory()}
+    recording.final_map = {frame - base: pose for frame, pose in recording.whole_map.items() if frame >= base}
+    if experience_map.localizer is not None:   # a localisation's frames, from when they are in the map's frame
+        recording.final_map = {seq: pose[:3] for seq, pose in recording.map_poses.items() if pose[4]}
+    recording.map_decisions = [decision for decision in experience_map.decisions if decision[0] >= base]
+    if config.map is not None and (config.map / "groundtruth.tum").is_file():
+        truth = read_tum(config.map / "groundtruth.tum")
+        at_stamp = {round(stamp, 6): tuple(position[:2]) for stamp, position in zip(truth.stamps, truth.positions)}
+        recording.saved_truth = {step.frame: at_stamp[round(step.stamp, 6)] for step in map_log.steps
+                                 if step.frame < base and round(step.stamp, 6) in at_stamp}
 
 
 def clear_previous_run(folder: Path, overwrite: bool) -> None:

@@ -25,7 +25,7 @@ import numpy as np
 from services.common.errors import DataError, GridslamError
 from services.evaluation.trajectory import Trajectory, read_tum
 from services.ros.messages import (
-    CAMERA_MAX_WIDTH, STAGES, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
+    CAMERA_MAX_WIDTH, ROUTE_TOPIC, STAGES, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
 )
 
 log = logging.getLogger(__name__)
@@ -105,11 +105,25 @@ def write_after_run(folder: Path, recording, trajectories: dict[str, Trajectory]
 
 def write_run_mcap(path: Path, content: RunContent) -> dict[str, int]:
     """Write `content` as an MCAP file of ROS 2 messages; returns the message count per topic."""
+    ros = RosMessages()
+    counts = write_mcap(path, ros, _messages(ros, content), content.metadata)
+    log.info("wrote %s: %d messages on %d topics", path, sum(counts.values()), len(counts))
+    return counts
+
+
+def write_route_mcap(path: Path, poses) -> dict[str, int]:
+    """A route planned on the map as one nav_msgs/Path in the `map` frame, ``poses`` (N, 3)."""
+    ros = RosMessages()
+    return write_mcap(path, ros, [(0, ROUTE_TOPIC, ros.path(0, "map", [(0, x, y, heading) for x, y, heading in poses]))],
+                      {"content": "gridslam route"})
+
+
+def write_mcap(path: Path, ros: RosMessages, messages, metadata: dict | None = None) -> dict[str, int]:
+    """An MCAP file of (stamp ns, topic, CDR bytes) messages in stamp order; the count per topic."""
     try:
         from mcap.writer import CompressionType, Writer
     except ImportError:
         raise RosUnavailable("writing MCAP needs the optional extra 'ros': pip install 'gridslam[ros]'") from None
-    ros = RosMessages()
     counts: dict[str, int] = {}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -118,7 +132,7 @@ def write_run_mcap(path: Path, content: RunContent) -> dict[str, int]:
         writer.start(profile="ros2", library="gridslam")
         channels: dict[str, int] = {}
         schemas: dict[str, int] = {}
-        for number, (stamp, topic, data) in enumerate(_messages(ros, content)):
+        for number, (stamp, topic, data) in enumerate(messages):
             channel = channels.get(topic)
             if channel is None:
                 msgtype = TOPICS[topic]
@@ -128,10 +142,9 @@ def write_run_mcap(path: Path, content: RunContent) -> dict[str, int]:
                     topic, "cdr", schemas[msgtype], metadata={"offered_qos_profiles": offered_qos_profiles(topic)})
             writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp, sequence=number)
             counts[topic] = counts.get(topic, 0) + 1
-        if content.metadata:
-            writer.add_metadata("gridslam", {key: str(value) for key, value in content.metadata.items()})
+        if metadata:
+            writer.add_metadata("gridslam", {key: str(value) for key, value in metadata.items()})
         writer.finish()
-    log.info("wrote %s: %d messages on %d topics", path, sum(counts.values()), len(counts))
     return counts
 
 

@@ -61,6 +61,7 @@ CAMERA_INFO_TOPIC = "/gridslam/camera/camera_info"
 ACTIVITY_TOPIC = "/gridslam/grid/activity"
 PATH = "nav_msgs/msg/Path"
 POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+ROUTE_TOPIC = "/gridslam/route"   # a route planned on the map (gridslam map route)
 TOPICS: dict[str, str] = {
     **{topic: ODOMETRY for topic, _ in STAGES.values()},
     "/tf": TF,
@@ -70,6 +71,7 @@ TOPICS: dict[str, str] = {
     CAMERA_TOPIC: COMPRESSED_IMAGE,
     CAMERA_INFO_TOPIC: CAMERA_INFO,
     ACTIVITY_TOPIC: IMAGE,
+    ROUTE_TOPIC: PATH,
 }
 # Optical axes (z forward, x right, y down) in the body frame (x forward, y left, z up):
 # REP 103's camera "_optical" rotation, as a quaternion (x, y, z, w).
