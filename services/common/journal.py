@@ -132,8 +132,8 @@ def continue_session(source: Path, target: Path, header: dict, localize: bool, o
     if records[0] != header:
         differing = sorted(key for key in {**records[0].get("params", {}), **header.get("params", {})}
                            if records[0].get("params", {}).get(key) != header.get("params", {}).get(key))
-        what = f"parameters ({', '.join(differing)})" if differing else "version or vocabulary"
-        raise JournalError(f"{source}: the map was made with another {what} than this run's; run with the settings "
+        what = f"other parameters ({', '.join(differing)})" if differing else "another version or vocabulary"
+        raise JournalError(f"{source}: the map was made with {what} than this run's; run with the settings "
                            "(preset, config) it was made with")
     record = {SESSION: 1 + len(sessions(records[1:])), "localize": bool(localize), "map": str(origin)}
     try:

@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
-from services.common.journal import SESSION
+from services.common.journal import SESSION, read_records
 from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, map_files,
                                      session_base)
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
@@ -35,6 +35,7 @@ from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
 from services.evaluation.trajectory import read_tum
 from services.expmap.export import read_log
+from services.loopclosure.keyframes import check_file as check_keyframes
 from services.loopclosure.places import PLACE_RECOGNITIONS
 from services.pipeline.assumptions import assess
 from services.pipeline.recorder import Recorder
@@ -404,9 +405,15 @@ def check_saved_map(config: RunConfig) -> None:
         raise ConfigError("--map needs the map stage (drop --no-mapping)")
     if not config.map.is_dir():
         raise ConfigError(f"{config.map}: no such results folder (--map DIR: the folder of an earlier run)")
-    missing = [path.name for path in map_files(config.map).values() if not path.is_file()]
+    files = map_files(config.map)
+    missing = [path.name for path in files.values() if not path.is_file()]
     if missing:
         raise ConfigError(f"{config.map}: no saved map there (missing {', '.join(missing)})")
+    # Damage anywhere: one line naming the file and the place, before anything starts (the
+    # services check the rest — that the map was made with this run's settings — at start-up).
+    read_records(files["places"])
+    read_records(files["map"])
+    check_keyframes(files["keyframes"])
 
 
 def source_settings(config: RunConfig) -> SourceConfig:
