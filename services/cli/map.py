@@ -33,6 +33,9 @@ def register(subparsers) -> None:
     route.add_argument("--to", dest="goal", required=True, metavar="X,Y", type=point, help="goal, map frame, m")
     route.add_argument("--out", type=Path, metavar="FILE",
                        help="write the route as TUM to FILE and as nav_msgs/Path to FILE with .mcap (extra `ros`)")
+    route.add_argument("--reference", type=Path, metavar="TUM",
+                       help="ground truth of the map's frames (groundtruth.tum of the run that made it): the route's "
+                            "length through the true places of its experiences")
     route.set_defaults(func=run_route)
 
     export = commands.add_parser("export", help="rebuild a map from its log; write the graph (JSON) and the corrected trajectory (TUM)")
@@ -99,7 +102,7 @@ def point(text: str) -> tuple[float, float]:
 
 def run_route(args) -> int:
     from services.common.layout import MAP_LOG
-    from services.evaluation.trajectory import Trajectory, write_tum
+    from services.evaluation.trajectory import Trajectory, read_tum, write_tum
     from services.expmap.export import read_log
     from services.expmap.route import shortest_route
 
@@ -113,6 +116,10 @@ def run_route(args) -> int:
                         ("length", route.length, "m")]))
     if not route.found:
         raise ConfigError(f"{args.map}: no route: experiences {first} and {last} are in parts of the map no link joins")
+    if args.reference is not None:
+        true = true_places(map_log, experience_map, route.experiences, read_tum(args.reference))
+        print(f"through the true places of its experiences (--reference): {np.hypot(*np.diff(true, axis=0).T).sum():.1f} m; "
+              f"start and goal {np.hypot(*(true[-1] - true[0])):.1f} m apart")
     if args.out is not None:
         from services.ros.mcap_export import write_route_mcap
 
@@ -123,6 +130,18 @@ def run_route(args) -> int:
         write_route_mcap(mcap, poses)
         print(f"route: {mcap}")
     return 0
+
+
+def true_places(map_log, experience_map, experiences: list[int], reference) -> np.ndarray:
+    """The true positions (N, 2) of experiences: where the reference puts the frames that made
+    them (frames paired by stamp)."""
+    stamp_of = {step.frame: round(step.stamp, 6) for step in map_log.steps}
+    at_stamp = {round(stamp, 6): position[:2] for stamp, position in zip(reference.stamps, reference.positions)}
+    missing = [e for e in experiences if stamp_of.get(experience_map.created[e]) not in at_stamp]
+    if missing:
+        raise ConfigError(f"the reference has no pose at the frame of experience {missing[0]} (frame "
+                          f"{experience_map.created[missing[0]]}): give the ground truth of the run that made the map")
+    return np.array([at_stamp[stamp_of[experience_map.created[e]]] for e in experiences])
 
 
 def run_export(args) -> int:

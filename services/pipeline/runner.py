@@ -516,10 +516,12 @@ def final_map(folder: Path, config: RunConfig, recording) -> None:
     experience_map = map_log.rebuild()
     base = session_base(map_log.sessions[-1][1][SESSION]) if map_log.sessions else 0
     recording.frame_base = base
-    recording.whole_map = {frame: (x, y, heading) for frame, x, y, heading in experience_map.trajectory()}
-    recording.final_map = {frame - base: pose for frame, pose in recording.whole_map.items() if frame >= base}
+    whole_map = {frame: (x, y, heading) for frame, x, y, heading in experience_map.trajectory()}
+    recording.final_map = {frame - base: pose for frame, pose in whole_map.items() if frame >= base}
     if experience_map.localizer is not None:   # a localisation's frames, from when they are in the map's frame
         recording.final_map = {seq: pose[:3] for seq, pose in recording.map_poses.items() if pose[4]}
+    elif base:                                 # a later session: the map of every session, to score
+        recording.whole_map = whole_map
     recording.map_decisions = [decision for decision in experience_map.decisions if decision[0] >= base]
     if config.map is not None and (config.map / "groundtruth.tum").is_file():
         truth = read_tum(config.map / "groundtruth.tum")
