@@ -9,6 +9,7 @@ restarting any service that dies → query statuses and the map → stop everyth
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import os
 import signal
@@ -21,12 +22,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
 from services.common.layout import CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
+from services.common.settings import config_fields
 from services.egomotion import ESTIMATORS
 from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
@@ -37,7 +39,7 @@ from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
-from services.ros.rmw_zenoh import DISTROS, KEY_STYLES
+from services.ros.rmw_zenoh import GraphParams
 from services.source.service import SourceConfig
 from services.source.spec import bag_settings, open_source
 
@@ -63,7 +65,7 @@ class RunError(GridslamError):
     """The run could not start or complete (the message says which service and where its log is)."""
 
 
-class RunConfig(BaseModel):
+class _RunFields(BaseModel):
     """A whole-stack run (`gridslam run`); written to config.json in the results folder."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -115,15 +117,17 @@ class RunConfig(BaseModel):
     mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
     foxglove: int | None = Field(None, ge=0, le=65535, description="Also serve the run live to Foxglove on this port (loopback).")
     ros2: bool = Field(False, description="Also run the ros2 service: the run as a node of a ROS 2 graph over Zenoh (docs/ecosystem.md).")
-    ros_domain_id: int | None = Field(None, ge=0, le=232, description="ROS 2 domain of the ros2 service and of a ros2: source.")
-    ros_namespace: str | None = Field(None, description="ROS namespace of the ros2 service's node (default /gridslam).")
-    ros_distro: Literal[DISTROS] | None = Field(None, description="ROS 2 distribution of the graph (default jazzy).")
-    ros2_keys: Literal[KEY_STYLES] | None = Field(None, description="rmw_zenoh's keys (default) or zenoh-bridge-ros2dds'.")
     image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
     right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
     camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
     odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
     stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
+
+
+# The ROS 2 graph settings of the ros2 service and of a ros2: source (--ros-domain-id,
+# --ros-namespace, --ros-distro, --ros2-keys), declared once in GraphParams; None: the service's.
+RunConfig = create_model("RunConfig", __base__=_RunFields, __doc__=_RunFields.__doc__,
+                         **config_fields(GraphParams, optional=True))
 
 
 @dataclass
@@ -339,7 +343,7 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
 def graph_args(config: RunConfig) -> list[str]:
     """The ROS 2 graph flags given to the run, for the ros2 service and a ros2: source."""
     args = []
-    for name in ("ros_domain_id", "ros_namespace", "ros_distro", "ros2_keys"):
+    for name in (f.name for f in dataclasses.fields(GraphParams)):
         value = getattr(config, name)
         args += [f"--{name.replace('_', '-')}", str(value)] if value is not None else []
     return args
