@@ -131,6 +131,8 @@ class ClientServer:
                                                                         data=owner.msgdefs[msgtype]))
                          for topic, msgtype in TOPICS.items()}
         self.replayed: set[str] = set()   # topics the client subscribed to and was sent the history of
+        self.closed = False
+        self._closing = threading.Lock()
         listener = self
 
         class Listener(foxglove.websocket.ServerListener):   # SDK threads
@@ -160,6 +162,12 @@ class ClientServer:
             self.channels[topic].log(data, log_time=stamp)
 
     def close(self) -> None:
+        """Once, from whichever thread comes first (the relay's when the client leaves, the
+        service's when it stops)."""
+        with self._closing:
+            if self.closed:
+                return
+            self.closed = True
         self.owner.forget(self)
         self.server.stop()
 
