@@ -196,8 +196,7 @@ class FoxgloveService(Service):
         self.map_pending: int | None = None     # stamp of a map change not sent yet
         self.map_sent_at = 0.0
         self.dead_reckoning: DeadReckoning | None = None   # of the egomotion increments
-        self.egomotion_seq = -1
-        self.pose_seq: dict[str, int] = {}      # last seq per pose topic: one going backwards is a new run
+        self.pose_seq: dict[str, tuple[int, int]] = {}   # pose topic → (first, last) seq of the run
         self._snapshot: MapSnapshot | None = None   # the map as fetched at start, until the main thread applies it
 
     def open_client(self) -> ClientServer:   # a relay thread: a client is connecting
@@ -263,14 +262,22 @@ class FoxgloveService(Service):
                     client.log(topic, stamp, data)
                 self.sent += 1
 
-    def _new_run_if_older(self, topic: str, seq: int) -> None:
-        """A pose topic's seq going backwards is a new run on the robot: its history starts afresh."""
-        last = self.pose_seq.get(topic)
-        if last is not None and seq < last:
+    def _fresh(self, topic: str, seq: int) -> bool:
+        """Whether a pose is new. A seq back at or before the run's first is a new run on the
+        robot: the history starts afresh (True). One back by less is a frame sent again (a
+        stage's outputs replayed after a reconnection, the frames in flight resent to a
+        restarted stage): the clients have it already (False)."""
+        first, last = self.pose_seq.get(topic, (seq, seq - 1))
+        if seq <= first and last >= first and seq <= last:
             with self.lock:
                 self.history.clear()
             self.pose_seq.clear()
-        self.pose_seq[topic] = seq
+            self.dead_reckoning = None
+            first = seq
+        elif seq <= last:
+            return False
+        self.pose_seq[topic] = (first, seq)
+        return True
 
     @staticmethod
     def _stamp(message) -> int:
@@ -281,23 +288,25 @@ class FoxgloveService(Service):
         # Dead reckoning of the increments as egomotion.tum has it, the way the viewer and the
         # gridcells baseline do it (turned for the integrators' turn-first order).
         seq = message.header.seq
-        self._new_run_if_older("egomotion", seq)
-        if self.dead_reckoning is None or seq <= self.egomotion_seq:
+        if not self._fresh("egomotion", seq):
+            return
+        if self.dead_reckoning is None:
             self.dead_reckoning = DeadReckoning()
-        self.egomotion_seq = seq
         step = message.increment
         pose = self.dead_reckoning.step(*turn_first(step.forward, step.left, step.yaw), step.yaw).pose
         stamp = self._stamp(message)
         self._log(stamp, *self.ros.planar_pose("egomotion", stamp, pose.x, pose.y, pose.heading))
 
     def on_grid_pose(self, message: GridPose) -> None:
-        self._new_run_if_older("grid/pose", message.header.seq)
+        if not self._fresh("grid/pose", message.header.seq):
+            return
         stamp = self._stamp(message)
         self._log(stamp, *self.ros.planar_pose("gridcells", stamp, message.pose.position.x, message.pose.position.y,
                                                message.heading))
 
     def on_map_pose(self, message: MapPose) -> None:
-        self._new_run_if_older("map/pose", message.header.seq)
+        if not self._fresh("map/pose", message.header.seq):
+            return
         stamp = self._stamp(message)
         self._log(stamp, *self.ros.planar_pose("map", stamp, message.pose.position.x, message.pose.position.y,
                                                message.heading))

@@ -171,9 +171,12 @@ def test_a_client_subscribing_late_gets_the_run_so_far_then_every_new_message_on
         while service.clients and time.monotonic() < deadline:
             time.sleep(0.02)
         assert service.clients == []
-        # A new run on the robot (its seq back at 0): the history starts afresh.
-        service._new_run_if_older("map/pose", 7)
-        service._new_run_if_older("map/pose", 0)
+        # A pose sent again (a stage's outputs replayed, seq back by a few) is not kept twice; a
+        # new run on the robot (its seq back at its first) starts the history afresh.
+        assert [service._fresh("map/pose", seq) for seq in (1, 2, 3, 4, 5, 6, 7)] == [True] * 7
+        assert [service._fresh("map/pose", seq) for seq in (5, 6, 7)] == [False] * 3
+        assert service.history.messages("/gridslam/map")[0][0] == 1
+        assert service._fresh("map/pose", 1) and service.history.messages("/gridslam/map") == []
         publish(100)
         third = Client(service.relay.port, "/gridslam/map")
         assert third.stamps() == [100]
