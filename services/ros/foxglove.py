@@ -230,7 +230,7 @@ class FoxgloveService(Service):
             client.close()
 
     def setup(self) -> None:
-        # drop_stale=False: a seq going backwards is a new run, shown afresh (as the viewer does).
+        # drop_stale=False: a seq back at the run's first is a new run, shown afresh (_fresh).
         self.subscribe("egomotion", self.on_egomotion, drop_stale=False, follows=lambda message: message.previous_seq)
         self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
         self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
