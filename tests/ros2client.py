@@ -83,3 +83,6 @@ class Client:
         session = self.sdk.ZenohSession._instance
         if session is not None:
             session.close()
+        # The SDK's message registry is global and remembers the types it loaded into the closed
+        # session's type store; the next test's session has an empty store, so it starts afresh.
+        importlib.import_module("zenoh_ros2_sdk.message_registry")._registry = None

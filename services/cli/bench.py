@@ -19,6 +19,7 @@ BENCHMARKS: dict[str, str] = {
     "geometry": "services.loopclosure.geometry_bench",
     "place-recognition": "services.benchmarks.place_recognition",
     "ros2": "services.ros.bench",
+    "foxglove": "services.ros.foxglove_bench",
 }
 
 

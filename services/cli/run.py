@@ -53,10 +53,12 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     add_place_recognition_argument(parser)
     add_map_reuse_arguments(parser)
     parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
-                        help="also serve the live viewer (default 127.0.0.1:8080)")
+                        help="also serve the live viewer (default 127.0.0.1:8080); a run that ends by itself is "
+                             "served on until Ctrl-C")
     add_world_arguments(parser)
     parser.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
-                        help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (default 8765; extra `foxglove`)")
+                        help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (default 8765; extra `foxglove`); "
+                             "a run that ends by itself is served on until Ctrl-C")
     parser.add_argument("--ros2", action="store_true", default=None,
                         help="also run the ros2 service: the run as the node gridslam of a ROS 2 graph over Zenoh "
                              "(rmw_zenoh; docs/ecosystem.md)")
@@ -139,12 +141,20 @@ def execute(args, **defaults) -> int:
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args))
     progress = Progress()
     try:
-        result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite,
+        result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite, serve=True,
                               announce=lambda line: print(line, file=sys.stderr, flush=True))
     finally:
         progress.close()
-    print(format_table(summary_rows(result.metrics)))
-    print(f"results: {result.folder}")
+    try:
+        print(format_table(summary_rows(result.metrics)))
+        print(f"results: {result.folder}")
+        if result.serving is not None:   # --view, --foxglove: time to connect to the finished run
+            addresses = ", ".join(f"{name} {address}" for name, address in result.serving.addresses.items())
+            print(f"the run has finished; serving it until Ctrl-C: {addresses}", flush=True)
+            result.serving.wait()
+    finally:
+        if result.serving is not None:
+            result.serving.close()
     return 0
 
 

@@ -46,9 +46,11 @@ def check(params) -> None:
             raise ConfigError(f"{kind}: invalid {f.name} = {value!r}")
 
 
-def config_fields(params_type: type, prefix: str = "") -> dict[str, tuple[Any, Any]]:
+def config_fields(params_type: type, prefix: str = "", *, optional: bool = False) -> dict[str, tuple[Any, Any]]:
     """pydantic.create_model field definitions for every setting of ``params_type``, named
-    ``prefix + name``, with its default, description and bounds."""
+    ``prefix + name``, with its default, description and bounds. ``optional``: each field may be
+    None and is None by default, meaning "the service's own setting" (a model that passes
+    settings on to a service, such as the whole run's, leaves the default to the service)."""
     from pydantic import Field
 
     fields = {}
@@ -57,7 +59,13 @@ def config_fields(params_type: type, prefix: str = "") -> dict[str, tuple[Any, A
         if meta.get("choices"):
             annotation = Literal[meta["choices"]]
         bounds = {bound: meta[bound] for bound in _BOUNDS if meta.get(bound) is not None}
-        fields[prefix + f.name] = (annotation, Field(f.default, description=meta.get("help", ""), **bounds))
+        description = meta.get("help", "")
+        if optional:
+            annotation, default = annotation | None, None
+            description = f"{description} (default: the service's, {f.default})"
+        else:
+            default = f.default
+        fields[prefix + f.name] = (annotation, Field(default, description=description, **bounds))
     return fields
 
 

@@ -9,6 +9,7 @@ restarting any service that dies → query statuses and the map → stop everyth
 from __future__ import annotations
 
 import collections
+import dataclasses
 import json
 import logging
 import os
@@ -22,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
@@ -30,6 +31,7 @@ from services.common.journal import SESSION, read_records
 from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, map_files,
                                      session_base)
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
+from services.common.settings import config_fields
 from services.egomotion import ESTIMATORS
 from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
 from services.evaluation.results import results_dir, write_config
@@ -42,7 +44,7 @@ from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
-from services.ros.rmw_zenoh import DISTROS, KEY_STYLES
+from services.ros.rmw_zenoh import GraphParams
 from services.source.service import SourceConfig
 from services.source.spec import bag_settings, open_source
 
@@ -68,7 +70,7 @@ class RunError(GridslamError):
     """The run could not start or complete (the message says which service and where its log is)."""
 
 
-class RunConfig(BaseModel):
+class _RunFields(BaseModel):
     """A whole-stack run (`gridslam run`); written to config.json in the results folder."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -124,15 +126,17 @@ class RunConfig(BaseModel):
     mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
     foxglove: int | None = Field(None, ge=0, le=65535, description="Also serve the run live to Foxglove on this port (loopback).")
     ros2: bool = Field(False, description="Also run the ros2 service: the run as a node of a ROS 2 graph over Zenoh (docs/ecosystem.md).")
-    ros_domain_id: int | None = Field(None, ge=0, le=232, description="ROS 2 domain of the ros2 service and of a ros2: source.")
-    ros_namespace: str | None = Field(None, description="ROS namespace of the ros2 service's node (default /gridslam).")
-    ros_distro: Literal[DISTROS] | None = Field(None, description="ROS 2 distribution of the graph (default jazzy).")
-    ros2_keys: Literal[KEY_STYLES] | None = Field(None, description="rmw_zenoh's keys (default) or zenoh-bridge-ros2dds'.")
     image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
     right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
     camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
     odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
     stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
+
+
+# The ROS 2 graph settings of the ros2 service and of a ros2: source (--ros-domain-id,
+# --ros-namespace, --ros-distro, --ros2-keys), declared once in GraphParams; None: the service's.
+RunConfig = create_model("RunConfig", __base__=_RunFields, __doc__=_RunFields.__doc__,
+                         **config_fields(GraphParams, optional=True))
 
 
 @dataclass
@@ -144,6 +148,7 @@ class Child:
     restarts: int = 0
     seen: bool = False                # its health token was seen since its last start
     exits_without_progress: int = 0   # exits since a frame last completed
+    address: str | None = None        # where it serves, as it printed it (`gridslam viewer: http://...`)
     tail: collections.deque = field(default_factory=lambda: collections.deque(maxlen=TAIL_LINES))
     readers: list[threading.Thread] = field(default_factory=list)
 
@@ -186,8 +191,11 @@ class Supervisor:
             log.warning("%s: cannot write its log %s (%s)", child.name, child.log_path, error.strerror)
             log_file = None
         with stream:
+            announcement = f"gridslam {child.name.partition('-')[0]}: ".encode()
             for line in stream:
                 child.tail.append(line.decode(errors="replace").rstrip())
+                if line.startswith(announcement):   # a service saying where it serves (the viewer, Foxglove)
+                    child.address = line[len(announcement):].decode(errors="replace").strip()
                 if log_file is None:
                     continue
                 try:
@@ -350,7 +358,7 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
 def graph_args(config: RunConfig) -> list[str]:
     """The ROS 2 graph flags given to the run, for the ros2 service and a ros2: source."""
     args = []
-    for name in ("ros_domain_id", "ros_namespace", "ros_distro", "ros2_keys"):
+    for name in (f.name for f in dataclasses.fields(GraphParams)):
         value = getattr(config, name)
         args += [f"--{name.replace('_', '-')}", str(value)] if value is not None else []
     return args
@@ -437,20 +445,63 @@ def log_preset(config: RunConfig, services: list[str]) -> None:
         log.warning("%s", line)
 
 
+SERVERS = ("viewer", "foxglove")   # observers a user connects to: they announce an address
+
+
+@dataclass
+class Serving:
+    """A finished run's observers (the viewer, the Foxglove server, the ros2 node) and its router,
+    kept running so that a browser or Foxglove can still connect, until `wait()` returns."""
+
+    supervisor: Supervisor
+    names: list[str]
+
+    @property
+    def addresses(self) -> dict[str, str]:
+        return {name: self.supervisor.children[name].address for name in SERVERS
+                if name in self.names and self.supervisor.children[name].address}
+
+    def wait(self, stop_event: threading.Event | None = None) -> None:
+        """Until Ctrl-C (SIGINT), SIGTERM, `stop_event`, or every server has exited; then stop them."""
+        stop_event = stop_event or threading.Event()
+        previous = None
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGTERM, lambda *_: stop_event.set())
+        try:
+            while not stop_event.wait(0.2):
+                if all(self.supervisor.exited(name) is not None for name in self.names if name in SERVERS):
+                    log.warning("the run's viewer and Foxglove server have exited")
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+            self.close()
+
+    def close(self) -> None:
+        self.supervisor.stop(self.names)
+        self.supervisor.stop(["router"])
+
+
 @dataclass
 class RunResult:
     folder: Path
     metrics: dict
+    serving: Serving | None = None   # with run_pipeline(serve=True): the finished run's servers, still running
 
 
 def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop_event: threading.Event | None = None,
-                 overwrite: bool = False, announce=None) -> RunResult:
+                 overwrite: bool = False, announce=None, serve: bool = False) -> RunResult:
     """Run the whole stack on `config.source`, write the results folder, return its metrics.
 
     `progress(done, total)` is called about five times a second; `stop_event` ends the run early;
     `announce(line)` is given the lines saying what the run assumes (estimator, camera, scale)
-    before it starts. A run whose estimator cannot work on its source fails before anything
-    starts (assumptions.StageInputError).
+    before it starts, and the viewer's and the Foxglove server's addresses. A run whose
+    estimator cannot work on its source fails before anything starts (assumptions.StageInputError).
+    With `serve`, a run that ends by itself (its source finished) and has a viewer or a Foxglove
+    server leaves them (and the router, the ros2 node) running: RunResult.serving, whose
+    `wait()` the caller calls once it has shown the results.
     A folder that holds an earlier run is refused, or cleared first with `overwrite`: its
     services would resume that run's state instead of starting afresh."""
     stop_event = stop_event or threading.Event()
@@ -479,6 +530,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     ack_topic = "map/pose" if config.mapping else "grid/pose"
     supervisor = Supervisor(folder / LOGS)
     started = time.monotonic()
+    kept: list[str] = []   # children that go on serving the finished run
     try:
         if config.connect is None:
             router = supervisor.start("router", ["router", "--listen", config.listen])
@@ -490,14 +542,30 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
         with Recorder(runtime, camera_images=config.mcap) as recorder:
             _wait_for_services(supervisor, recorder, stages)
+            for name in (name for name in observers if name in SERVERS):
+                (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
             supervisor.start("source", source_args(config, config.start, ack_topic))
-            _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
+            completed = _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
             statuses = recorder.statuses()
             recording = recorder.recording
         wall_time = time.monotonic() - started
+        if serve and completed and any(name in SERVERS for name in observers):
+            kept = observers
     finally:
-        supervisor.stop([n for n in supervisor.children if n != "router"])
-        supervisor.stop(["router"])
+        supervisor.stop([n for n in supervisor.children if n != "router" and n not in kept])
+        if not kept:
+            supervisor.stop(["router"])
+    serving = Serving(supervisor, kept) if kept else None
+    try:
+        return RunResult(folder, _write_results(folder, config, supervisor, recording, statuses, total, wall_time), serving)
+    except BaseException:
+        if serving is not None:   # the results could not be written: nothing is left to serve
+            serving.close()
+        raise
+
+
+def _write_results(folder, config, supervisor, recording, statuses, total, wall_time) -> dict:
+    """Evaluate the finished run and write its results folder; its metrics."""
     if (folder / MAP_LOG).exists():
         final_map(folder, config, recording)
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
@@ -505,7 +573,21 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     if config.mcap:
         result["summary"]["run_mcap"] = write_after_run(folder, recording, trajs, config)
     write_report(folder, recording, result, trajs)
-    return RunResult(folder, result)
+    return result
+
+
+def _wait_for_address(supervisor: Supervisor, name: str) -> str:
+    """The address a server child printed (`gridslam viewer: URL`); RunError when it exits first."""
+    child = supervisor.children[name]
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while child.address is None:
+        code = supervisor.exited(name)
+        if code is not None:
+            raise RunError(f"{name} exited at start-up (code {code}): {supervisor.log_tail(name)} (log: {child.log_path})")
+        if time.monotonic() > deadline:
+            raise RunError(f"{name} did not say where it serves within {STARTUP_TIMEOUT_S:.0f} s (log: {child.log_path})")
+        time.sleep(0.05)
+    return child.address
 
 
 def final_map(folder: Path, config: RunConfig, recording) -> None:
@@ -566,7 +648,8 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
         time.sleep(0.1)
 
 
-def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> None:
+def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> bool:
+    """Until the source has finished (True) or `stop_event` is set (False)."""
     last_done, last_change = -1, time.monotonic()
     last_liveness_check, missed, silent = 0.0, set(), set()
     while not stop_event.is_set():
@@ -580,7 +663,7 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
         code = supervisor.exited("source")
         acked = recorder.last_seq(ack_topic)
         if code == 0:   # the source exits 0 once its last frame is acknowledged
-            return
+            return True
         if code is not None:
             # Resume at the last acknowledged frame: the frames in flight are sent again, after
             # one that every stage has handled (stale for them; it primes a restarted estimator).
@@ -617,3 +700,4 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
             raise RunError(f"no frame completed for {config.stall_timeout:.0f} s (last acknowledged: {acked}){note}; "
                            f"see the logs in {supervisor.log_dir}")
         time.sleep(0.2)
+    return False

@@ -16,6 +16,7 @@ publishers drop rather than block (rmw_zenoh's KEEP_LAST congestion control).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import time
@@ -148,15 +149,18 @@ class Ros2Service(Service):
         self._put_ros(self.projection.activity(self._stamp(message), pixels))
 
 
+GRAPH_SETTINGS = tuple(f.name for f in dataclasses.fields(GraphParams))   # their names, for flags and configs
+
+
 def add_graph_arguments(parser: argparse.ArgumentParser) -> None:
     """--ros-domain-id, --ros-namespace, --ros-distro, --ros2-keys (GraphParams), shared by the
     service, `gridslam run` and `demo`; defaults None ("not given")."""
-    for name in ("ros_domain_id", "ros_namespace", "ros_distro", "ros2_keys"):
+    for name in GRAPH_SETTINGS:
         add_flag(parser, GraphParams, name)
 
 
 def graph_flags(args) -> dict:
-    return {name: getattr(args, name, None) for name in ("ros_domain_id", "ros_namespace", "ros_distro", "ros2_keys")}
+    return {name: getattr(args, name, None) for name in GRAPH_SETTINGS}
 
 
 def environment_defaults(environ=None) -> dict:

@@ -174,6 +174,7 @@ class SourceService(Service):
         self.acknowledged: collections.deque[CameraFrame] = collections.deque(maxlen=config.resend_acknowledged)
         self.sent = 0
         self.finished = False
+        self.completed = False      # every frame sent and acknowledged: `finished` in the status
         self.next_due = 0.0
         self.waiting_since: float | None = None
         self.unreachable = False                   # camera/frame lost every subscriber after the first frame
@@ -266,6 +267,7 @@ class SourceService(Service):
             self._resend(f"no acknowledgement for {self.config.resend_after:.1f} s")
         if self.finished:
             if not self.in_flight or not self.window:
+                self.completed = True   # every frame out (and acknowledged): the run is over
                 if self.config.exit_at_end:
                     log.info("source: all %d frames sent%s", self.sent, " and acknowledged" if self.window else "")
                     self.stop()
@@ -400,6 +402,8 @@ class SourceService(Service):
     def extra_counters(self) -> dict[str, float]:
         extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent,
                  "frames_unreadable": len(getattr(self.frames, "unreadable", ()))}
+        if self.completed:   # observers (the viewer) show the run as finished
+            extra["finished"] = 1
         if self.flow is not None:
             extra["window"] = self.flow.limit
             if self.flow.rate is not None and self.flow.min_latency is not None:

@@ -11,6 +11,10 @@ the drawn path keeps every `stride`-th sample; when the path exceeds `max_points
 halved (every other point kept) and its `epoch` changes, so a browser that holds the old
 epoch is sent the whole path again, and one that holds the current epoch only the new tail.
 A `seq` that goes backwards starts the track afresh (a new run on the same robot).
+
+A run has finished when the source's status says so (`finished` among its counters: every
+frame sent and acknowledged); a service whose liveliness token is gone after a status saying
+`stopping` stopped, rather than died.
 """
 
 from __future__ import annotations
@@ -137,6 +141,7 @@ class ViewerState:
         self._frame_times: deque[tuple[float, int]] = deque()
         self._arrivals: dict[int, float] = {}   # camera frame seq → arrival time (monotonic s)
         self._latency: dict[str, deque[float]] = {"grid": deque(maxlen=LATENCY_SAMPLES), "map": deque(maxlen=LATENCY_SAMPLES)}
+        self.finished: dict | None = None       # {"frames": sent} once the source said every frame is done
         self.revision = 0                       # bumped by every change, so idle streams can skip a tick
 
     # ----------------------------------------------------------------- inputs
@@ -246,6 +251,9 @@ class ViewerState:
         uptime and optionally `extra` (service-specific counters)."""
         row = self._service(service, instance)
         row.status, row.status_time = dict(counters), now
+        if service == "source":
+            extra = counters.get("extra") or {}
+            self.finished = {"frames": int(extra.get("frames_sent", 0))} if extra.get("finished") else None
         self.revision += 1
 
     # ----------------------------------------------------------------- output
@@ -309,6 +317,7 @@ class ViewerState:
             "gaps": sum(status["gaps"] for status in pipeline),
             "saturations": self.saturations,
             "services_alive": sum(row.alive for row in self.services.values()),
+            "finished": self.finished,
         }
 
     def rate(self, now: float) -> float:
@@ -324,8 +333,11 @@ class ViewerState:
         for (service, instance), row in sorted(self.services.items()):
             # A token without status messages (the router) is not silent; one whose status stopped is.
             silent = row.status_time is not None and now - row.status_time > self.params.silent_after_s
-            rows.append({"service": service, "instance": instance, "alive": row.alive, "silent": silent,
-                         **(row.status or {})})
+            # Gone after saying it was stopping: it stopped (at the end of a run, say), it did not die.
+            stopped = not row.alive and row.status is not None and row.status.get("state") == "stopping"
+            state = {"state": "stopped"} if stopped else {}
+            rows.append({"service": service, "instance": instance, "alive": row.alive, "silent": silent and not stopped,
+                         "stopped": stopped, **(row.status or {}), **state})
         return rows
 
     # ----------------------------------------------------------------- internals
@@ -338,6 +350,7 @@ class ViewerState:
         self.revision += 1
         if self.frame is not None and seq < self.frame and restarted:
             self._frame_times.clear()   # a new run: count its frames from here
+            self.finished = None
             self._arrivals = {s: t for s, t in self._arrivals.items() if s <= seq}
         elif self.frame is not None and seq <= self.frame:
             return

@@ -185,10 +185,10 @@ def test_the_foxglove_server_says_in_one_line_that_its_port_is_taken():
             FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=port))
     service = FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=0))   # any free port
     try:
-        assert service.url.startswith("ws://127.0.0.1:") and service.server.port > 0
-        assert set(service.channels) == set(TOPICS)
+        assert service.url == f"ws://127.0.0.1:{service.relay.port}" and service.relay.port > 0
+        assert set(service.msgdefs) == set(TOPICS.values())   # each client's channels: every topic's type
     finally:
-        service.server.stop()
+        service.close_server()
 
 
 def test_every_channel_offers_its_qos_and_tf_static_is_latched(tmp_path):

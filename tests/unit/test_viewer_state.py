@@ -134,6 +134,33 @@ def test_counters_frame_rate_latency_and_totals():
     assert not state.service_rows(now=2.0)[1]["silent"] and rows["gridcells"]["gaps"] == 3
 
 
+def test_a_run_is_finished_when_the_source_says_so_and_its_stopped_services_are_not_dead():
+    state = ViewerState()
+    for seq in range(5):
+        state.on_camera_frame(seq, None, None, now=0.1 * seq)
+        state.on_grid_pose(seq, 0.1 * seq, 0.0, 0.0, (1.0, 0.0), 0.1, False, "grid", now=0.1 * seq)
+    for service in ("source", "gridcells", "egomotion"):
+        state.on_liveliness(service, service, True)
+    state.on_status("source", "source", {**status(), "extra": {"frames_sent": 5}}, now=0.5)
+    assert as_json(state, now=0.6)["counters"]["finished"] is None   # frames sent, not yet all done
+    # The source's last status as it stops: every frame acknowledged; then the runner stops the stages.
+    state.on_status("source", "source", {**status(), "state": "stopping", "extra": {"frames_sent": 5, "finished": 1}},
+                    now=0.7)
+    state.on_status("gridcells", "gridcells", {**status(), "state": "stopping"}, now=0.8)
+    for service in ("source", "gridcells", "egomotion"):
+        state.on_liveliness(service, service, False)
+    view = as_json(state, now=60.0)
+    assert view["counters"]["finished"] == {"frames": 5} and view["counters"]["frame"] == 4
+    rows = {row["service"]: row for row in view["services"]}
+    assert rows["source"]["stopped"] and rows["source"]["state"] == "stopped" and not rows["source"]["silent"]
+    assert rows["gridcells"]["stopped"] and rows["gridcells"]["state"] == "stopped"
+    # Gone without saying it was stopping (its last status said running, or none came): not stopped.
+    assert not rows["egomotion"]["stopped"] and "state" not in rows["egomotion"]
+    # The next run on the robot (seq back at 0) is not finished.
+    state.on_camera_frame(0, None, None, now=61.0)
+    assert as_json(state, now=61.0)["counters"]["finished"] is None
+
+
 def test_latency_falls_back_to_grid_without_a_map():
     state = ViewerState()
     state.on_camera_frame(1, None, None, now=1.0)

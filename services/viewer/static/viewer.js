@@ -14,6 +14,7 @@ let links = [];                // [source, target, kind: 0 odometric, 1 closure 
 let currentExperience = null;
 let updates = 0;
 let drawPending = false;
+let finished = false;          // the run has finished (the source said so)
 
 const $ = (id) => document.getElementById(id);
 const svg = $("map");
@@ -74,7 +75,11 @@ function showCounters(c, connected) {
   text("gaps", c.gaps);
   text("services-alive", c.services_alive);
   const activity = $("activity");
-  if (!connected) {
+  finished = c.finished != null;
+  if (finished) {
+    activity.textContent = `finished · ${c.finished.frames} frames`;
+    activity.className = "badge done";
+  } else if (!connected) {
     activity.textContent = "waiting for the Zenoh router";
     activity.className = "badge off";
   } else if (c.since_last_frame_s === null) {
@@ -163,7 +168,7 @@ function showLoopClosures(closures) {
   const list = $("loop-closure-list");
   const html = closures.length
     ? closures.map((c) => `<li>frame ${c.frame} ↔ frame ${c.matched_frame} · template ${c.template} · ${c.votes} votes</li>`).join("")
-    : '<li class="none">none yet</li>';
+    : `<li class="none">${finished ? "none" : "none yet"}</li>`;
   if (list.innerHTML !== html) list.innerHTML = html;
 }
 
@@ -171,9 +176,10 @@ function showServices(rows) {
   const body = document.querySelector("#health tbody");
   const cell = (value) => `<td>${value === undefined || value === null ? "–" : value}</td>`;
   const html = rows.map((row) => {
-    const kind = !row.alive ? "dead" : row.silent ? "silent" : "";
+    const kind = row.stopped ? "stopped" : !row.alive ? "dead" : row.silent ? "silent" : "";
     const notes = [];
-    if (!row.alive) notes.push("no liveliness token");
+    if (row.stopped) notes.push("stopped");
+    else if (!row.alive) notes.push("no liveliness token");
     if (row.silent) notes.push("no recent status");
     for (const [name, value] of Object.entries(row.extra || {})) notes.push(`${name}=${value}`);
     return `<tr class="${kind}" title="${notes.join(" · ")}">` +
@@ -287,8 +293,9 @@ function connect() {
     $("connection").className = "badge on";
   };
   source.onerror = () => {
-    $("connection").textContent = "reconnecting…";
-    $("connection").className = "badge off";
+    // After a finished run the viewer is stopped with Ctrl-C: what the page shows is the run's end.
+    $("connection").textContent = finished ? "viewer stopped" : "reconnecting…";
+    $("connection").className = finished ? "badge" : "badge off";
   };
   source.onmessage = (event) => applyState(JSON.parse(event.data));
 }
