@@ -26,8 +26,8 @@ from urllib.parse import urlsplit
 import zenoh
 
 from schemas import (
-    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate, ServiceStatus,
-    ViewTemplate,
+    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate,
+    ServiceStatus, ViewTemplate,
 )
 from services.common import codec, topics
 from services.common.config import load_config
@@ -111,6 +111,7 @@ class ViewerService(Service):
         self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
         self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
         self.subscribe("loop/closure", self.on_loop_closure, drop_stale=False, sparse=True)
+        self.subscribe("map/route", self.on_map_route, drop_stale=False, sparse=True)
         self.subscribe("camera/frame", self.on_camera_frame, newest_only=True, drop_stale=False)
         self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
         self.subscribe("view/template", self.on_view_template, newest_only=True, drop_stale=False)
@@ -164,6 +165,10 @@ class ViewerService(Service):
         with self.lock:
             self.viewer_state.on_loop_closure(message.frame, message.matched_frame, message.matched_template,
                                               message.votes)
+
+    def on_map_route(self, message: MapRoute) -> None:
+        with self.lock:
+            self.viewer_state.on_route([(pose.position.x, pose.position.y) for pose in message.poses])
 
     def on_camera_frame(self, message: CameraFrame) -> None:
         image = display_image(image_from_msg(message.left), message.left.encoding, self.config.camera_width)

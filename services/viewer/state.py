@@ -125,6 +125,7 @@ class ViewerState:
         self.map_seq: int | None = None         # frame of the last map update or snapshot applied
         self.current_experience: int | None = None
         self.loop_closures: deque[dict] = deque(maxlen=LOOP_CLOSURES_SHOWN)
+        self.route: list[tuple[float, float]] = []   # the last route asked of the map (map/route)
         self.loop_closure_count = 0
         self.template: dict | None = None
         self.grid: dict | None = None          # lattice readout of the last grid/pose
@@ -221,6 +222,11 @@ class ViewerState:
         self._map_changed()
         return len(self.experiences) < experience_count or len(self.links) < link_count
 
+    def on_route(self, points: list[tuple[float, float]]) -> None:
+        """The last route planned on the map (its experiences' positions, start to goal)."""
+        self.route = list(points)
+        self._map_changed()
+
     def on_map_snapshot(self, seq: int, experiences: list[tuple[int, float, float]],
                         links: list[tuple[int, int, int]]) -> None:
         """The whole map as of frame `seq` (the `map/snapshot` reply). It replaces what is held,
@@ -282,6 +288,7 @@ class ViewerState:
                 "revision": self.map_revision,
                 "experiences": [(i, x, y) for i, (x, y) in sorted(self.experiences.items())],
                 "links": [[s, t, int(loop)] for (s, t), loop in self.links.items()],
+                "route": [[x, y] for x, y in self.route],
             }
             cursor.map_revision = self.map_revision
         if include_images:

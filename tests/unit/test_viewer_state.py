@@ -191,6 +191,17 @@ def test_map_is_sent_when_changed_and_snapshots_merge_by_age():
     assert not state.on_map_update(13, [(6, 1.0, 1.0)], [(5, 6, False)], experience_count=7, link_count=6)
 
 
+def test_the_last_route_asked_of_the_map_is_drawn_with_it():
+    state = ViewerState()
+    cursor = Cursor()
+    state.on_map_update(3, [(0, 0.0, 0.0), (1, 1.0, 0.0)], [(0, 1, False)], experience_count=2, link_count=1)
+    assert as_json(state, 0.0, cursor)["map"]["route"] == []
+    state.on_route([(0.0, 0.0), (1.0, 0.0)])
+    assert as_json(state, 0.0, cursor)["map"]["route"] == [[0.0, 0.0], [1.0, 0.0]]   # sent because it changed
+    state.on_route([(1.0, 0.0)])
+    assert as_json(state, 0.0, cursor)["map"]["route"] == [[1.0, 0.0]]
+
+
 # ---------------------------------------------------------------------- images
 def test_images_are_offered_once_per_revision():
     state = ViewerState()

@@ -11,6 +11,7 @@ const ARROW_GAIN = 4;          // the lattice shift arrow is drawn this many tim
 const tracks = Object.fromEntries(STAGES.map((stage) => [stage, { epoch: null, points: [], pose: null }]));
 const experiences = new Map(); // id → [x, y]
 let links = [];                // [source, target, kind: 0 odometric, 1 closure kept, 2 closure refused]
+let route = [];                // [[x, y], ...]: the last route asked of the map (map/route)
 let currentExperience = null;
 let updates = 0;
 let drawPending = false;
@@ -43,6 +44,7 @@ function applyState(state) {
     experiences.clear();
     for (const [id, x, y] of state.map.experiences) experiences.set(id, [x, y]);
     links = state.map.links;
+    route = state.map.route || [];
   }
   currentExperience = state.current_experience;
   showCounters(state.counters, state.connected);
@@ -245,6 +247,8 @@ function draw() {
   $("loop-links").dataset.count = String(paths[1].length);
   $("refused-links").setAttribute("d", paths[2].join(""));
   $("refused-links").dataset.count = String(paths[2].length);
+  $("route").setAttribute("d", route.length ? "M" + route.map(([x, y]) => `${sx(x)},${sy(y)}`).join("L") : "");
+  $("route").dataset.count = String(route.length);
   const current = currentExperience === null ? undefined : experiences.get(currentExperience);
   $("current-experience").setAttribute("cx", current ? sx(current[0]) : "-100");
   $("current-experience").setAttribute("cy", current ? sy(current[1]) : "-100");
