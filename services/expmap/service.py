@@ -33,7 +33,7 @@ from services.common.journal import SESSION, continue_session
 from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
+from services.expmap.graph import MOVED, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
 from services.expmap.route import shortest_route
 from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, header
 
@@ -172,6 +172,7 @@ class ExpMapService(Service):
         self.views: dict[int, ViewTemplate] = {}
         self.closures: dict[int, list[LoopClosure]] = {}   # by the seq of the frame that confirmed them
         self.skipped = 0   # frames with a pose but no view template
+        self._last_header = None   # of the last map/update or map/pose published
 
     def setup(self) -> None:
         self.subscribe("grid/pose", self.on_grid_pose)
@@ -185,6 +186,22 @@ class ExpMapService(Service):
         if self.writer is not None:
             self.writer.join()
         self.store.close()
+        self._publish_final()
+
+    def _publish_final(self) -> None:
+        """On a clean stop: the experiences whose best estimate differs from what was published
+        (frame by frame the map refreshes a bounded number of them), so observers end with the map
+        the run's results hold."""
+        if self._last_header is None or not len(self.map):
+            return
+        final = self.map.final_poses()
+        changed = np.flatnonzero((np.abs(final - self.map.poses) > MOVED).any(axis=1))
+        if len(changed):
+            self._send("map/update", MapUpdate(
+                header=self._last_header, experiences=[
+                    Experience(id=int(i), x=float(final[i, 0]), y=float(final[i, 1]), heading=float(final[i, 2]),
+                               template_id=self.map.templates[i], frame=self.map.created[i]) for i in changed],
+                links=[], experience_count=len(self.map), link_count=len(self.map.links)))
 
     def on_grid_pose(self, message: GridPose) -> None:
         position = message.pose.position
@@ -277,6 +294,7 @@ class ExpMapService(Service):
             log.warning("%s: cannot write the map checkpoint (%s)", self.store.path, error.strerror or error)
 
     def _publish(self, pose: GridPose, result: FrameResult) -> None:
+        self._last_header = pose.header.model_copy(update={"frame_id": "map"})
         if result.new_experiences or result.new_links or result.moved:
             changed = sorted(set(result.new_experiences) | set(result.moved))
             self.publish("map/update", MapUpdate(

@@ -531,12 +531,12 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     supervisor = Supervisor(folder / LOGS)
     started = time.monotonic()
     kept: list[str] = []   # children that go on serving the finished run
+    observers = (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []) + \
+        (["ros2"] if config.ros2 else [])
     try:
         if config.connect is None:
             router = supervisor.start("router", ["router", "--listen", config.listen])
             wait_port_open(config.listen, router.process)
-        observers = (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []) + \
-            (["ros2"] if config.ros2 else [])
         for name in stages + observers:
             supervisor.start(name, service_args(config, name, folder))
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
@@ -552,7 +552,9 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         if serve and completed and any(name in SERVERS for name in observers):
             kept = observers
     finally:
-        supervisor.stop([n for n in supervisor.children if n != "router" and n not in kept])
+        # The stages first (expmap sends the map as it ends), then the observers that are not kept.
+        supervisor.stop([n for n in supervisor.children if n not in ("router", *observers)])
+        supervisor.stop([n for n in observers if n not in kept])
         if not kept:
             supervisor.stop(["router"])
     serving = Serving(supervisor, kept) if kept else None
