@@ -3,11 +3,13 @@
 - `OutputMemory`: what the service published for each of its last input frames. A frame that
   arrives again (a source re-sending the frames in flight after a downstream service was
   restarted) gets the same outputs published again instead of recomputed, so the restarted
-  service downstream gets them and this service's state is untouched; after the link to the
-  router was lost and came back, all of them are published again, in frame order.
+  service downstream gets them and this service's state is untouched. (Samples lost on the
+  way, with a router or a lease, are another matter: Zenoh's advanced publisher keeps them and
+  the subscribers that missed them ask for them again, services/common/service.py.)
 - `RouterLink`: whether this process's session has a link to a router, from the transport's
   events: lost (no router left: what the service publishes now is lost, so its inbox waits) and
-  back (a router again: replay, then recover the order, services/common/sequencing.py).
+  back (a router again: the camera frames lost with it come again from the source, and the ones
+  after them wait, services/common/sequencing.py).
 
 Pure: no zenoh here; the adapter turns Zenoh's transport events into `opened` and `closed`.
 """
@@ -33,10 +35,6 @@ class OutputMemory:
     def of(self, seq: int) -> list[tuple[str, Any]]:
         """What was published for input frame `seq` (nothing once it is older than the last `frames`)."""
         return list(self._outputs.get(seq, ()))
-
-    def everything(self) -> list[tuple[str, Any]]:
-        """Every remembered output, in the order the frames were first handled."""
-        return [output for outputs in self._outputs.values() for output in outputs]
 
     def __len__(self) -> int:
         return len(self._outputs)
@@ -66,8 +64,8 @@ class RouterLink:
         return self._lost and not self._back
 
     def back(self) -> bool:
-        """Whether the link came back after it was lost (then the service replays its outputs);
-        true once per loss."""
+        """Whether the link came back after it was lost (then frames that skip ahead wait for the
+        ones lost); true once per loss."""
         if self._lost and self._back:
             self._lost = self._back = False
             return True

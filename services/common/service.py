@@ -20,9 +20,11 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import timedelta
 from typing import ClassVar
 
 import zenoh
+import zenoh.ext
 
 from schemas import Header, ServiceStatus, Time
 from schemas.base import Message
@@ -38,10 +40,21 @@ INBOX_SIZE = 16          # samples waiting for the main thread; beyond this, pub
 REPLAY_FRAMES = 64       # frames whose outputs are kept to answer a re-sent input again
 STATUS_PERIOD_S = 1.0    # how often the status message is published
 LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors, gaps, rejections
-# After the link to the router came back, a frame that skips ahead of the last one handled waits
-# this long for the ones before it (lost with the router, sent again by the source), so that
-# frames are still handled in order. A gap that is real (a skipped file, a live camera's drops)
-# ends the wait.
+# Samples lost on the way (with a router that died, or with a lease that expired) are recovered
+# by Zenoh's advanced publisher and subscriber (docs/reliability.md): each publisher of a pipeline
+# topic numbers its samples and keeps its last CACHE_SAMPLES; a subscriber that sees a number
+# missing holds what follows, asks the publisher's cache for the missing ones and delivers the
+# publisher's samples in their order. Every RECOVERY_QUERY_S it also asks for any it has not had
+# (the publisher's heartbeat cannot tell it: Zenoh ignores heartbeats on a key with a verbatim
+# chunk such as @v1), so that the last samples lost are recovered with nothing after them.
+CACHE_SAMPLES = 64
+RECOVERY_QUERY_S = 0.5
+# camera/frame is not recovered so (the source watches its matching status, which an advanced
+# publisher does not offer, and re-sends its frames in flight itself, services/source/replay.py):
+# after the link to the router came back, a frame of it that skips ahead of the last one handled
+# waits this long for the ones before it (lost with the router, sent again by the source), so
+# that frames are still handled in order. A gap that is real (a skipped file, a live camera's
+# drops) ends the wait.
 RECOVERY_S = 5.0
 MAX_HELD = 256           # frames waiting per subscription, beyond which the wait ends early
 # A message that names the one it follows (EgoMotion.previous_seq: several egomotion instances
@@ -83,8 +96,40 @@ class Subscription:
 
     @property
     def ordered(self) -> bool:
-        """Every frame is expected, in order (not a sparse, newest-only or replay-accepting topic)."""
-        return self.drop_stale and not self.sparse
+        """Every frame is expected, in order (not a sparse, newest-only or replay-accepting topic),
+        and one lost on the way is sent again by its sender, not recovered by Zenoh: after a
+        reconnection, frames that skip ahead wait for it."""
+        return self.drop_stale and not self.sparse and not recovers(self.topic)
+
+
+def recovers(topic: str) -> bool:
+    """Whether samples of `topic` lost on the way are recovered by Zenoh's advanced publisher and
+    subscriber (CACHE_SAMPLES): the pipeline's topics but camera/frame."""
+    return topic in topics.TOPICS and topic != "camera/frame"
+
+
+def declare_publisher(session: zenoh.Session, robot: str, topic: str):
+    """The publisher of `topic` for `robot`: congestion control BLOCK (offline replay loses
+    nothing), reliable; where `recovers(topic)`, numbered and cached, so that a subscriber that
+    missed a sample asks for it again."""
+    key, encoding = topics.key(robot, topic), zenoh.Encoding(codec.encoding_of(topics.model_of(topic)))
+    if recovers(topic):
+        return zenoh.ext.declare_advanced_publisher(
+            session, key, encoding=encoding, congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE, cache=zenoh.ext.CacheConfig(CACHE_SAMPLES),
+            sample_miss_detection=zenoh.ext.MissDetectionConfig())
+    return session.declare_publisher(key, encoding=encoding, congestion_control=zenoh.CongestionControl.BLOCK,
+                                     reliability=zenoh.Reliability.RELIABLE)
+
+
+def declare_subscriber(session: zenoh.Session, key: str, on_sample: Callable[[zenoh.Sample], None], recovered: bool):
+    """A subscriber of `key`; if `recovered`, one that asks the publishers' caches for the
+    samples it missed and delivers each publisher's samples in their order."""
+    if not recovered:
+        return session.declare_subscriber(key, on_sample)
+    return zenoh.ext.declare_advanced_subscriber(
+        session, key, on_sample,
+        recovery=zenoh.ext.RecoveryConfig(periodic_queries=timedelta(seconds=RECOVERY_QUERY_S)))
 
 
 class Service:
@@ -173,7 +218,9 @@ class Service:
             else:
                 self.counters.dropped_newest_only += 1
 
-        self._entities.append(self.session.declare_subscriber(topics.key(self.robot, topic), on_sample))
+        # An observer's or a newest-only subscription wants no old samples: nothing is asked for again.
+        recovered = recovers(topic) and not (newest_only or self.observer)
+        self._entities.append(declare_subscriber(self.session, topics.key(self.robot, topic), on_sample, recovered))
 
     def queryable(self, topic: str, answer: Callable[..., Message], parameters: bool = False) -> None:
         """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only);
@@ -207,10 +254,7 @@ class Service:
         """The publisher of `topic`, declared on first use."""
         publisher = self._publishers.get(topic)
         if publisher is None:
-            publisher = self._publishers[topic] = self.session.declare_publisher(
-                topics.key(self.robot, topic), encoding=zenoh.Encoding(codec.encoding_of(topics.model_of(topic))),
-                congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE,
-            )
+            publisher = self._publishers[topic] = declare_publisher(self.session, self.robot, topic)
         return publisher
 
     def header(self, seq: int, stamp: Time | float, frame_id: str = "") -> Header:
@@ -306,29 +350,12 @@ class Service:
         else:
             self._link.opened(str(event.transport.zid))
 
-    def _replay_after_reconnection(self) -> None:
-        """Publish the outputs of the last REPLAY_FRAMES frames again, in frame order, before anything new.
-
-        Outputs still queued when the link closed (the router restarted, or this process was
-        stopped beyond its lease and the router dropped it) are lost, and the frames handled
-        after the link is back would get through first: downstream would see a gap, then count
-        the lost frames, re-sent later, as stale, and lose them. Replayed first, they arrive in
-        order; what downstream already has is stale to it and costs nothing."""
-        outputs = self._outputs.everything()
-        for topic, output in outputs:
-            self._send(topic, output)
-        count = len(outputs)
-        self.counters.replayed += count
-        log.warning("%s: the link to the router was lost and is back; %d recent output(s) published again",
-                    self.name, count)
-
     def _serve_once(self) -> None:
         if self._link.down:
             # No router: what this service would publish now is lost, so its inbox waits.
             self._stop.wait(max(self.idle_timeout, 0.01))
             return
-        if self._link.back():
-            self._replay_after_reconnection()
+        if self._link.back():   # camera/frame's frames lost with the router come again: those after them wait
             self._order.reconnected(time.monotonic())
         for delivery in self._order.due(time.monotonic()):
             self._deliver(delivery)

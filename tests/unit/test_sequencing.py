@@ -110,7 +110,7 @@ def test_output_memory_keeps_the_last_frames_outputs_in_frame_order():
     for seq, topic in ((1, "grid/pose"), (1, "grid/activity"), (2, "grid/pose"), (3, "grid/pose")):
         memory.remember(seq, topic, f"{topic}@{seq}")
     assert memory.of(1) == [] and memory.of(2) == [("grid/pose", "grid/pose@2")] and len(memory) == 2
-    assert memory.everything() == [("grid/pose", "grid/pose@2"), ("grid/pose", "grid/pose@3")]
+    assert memory.of(3) == [("grid/pose", "grid/pose@3")]
 
 
 def test_the_router_link_is_down_when_the_last_router_left_and_back_once_when_one_returns():
