@@ -139,7 +139,8 @@ class Ros2Service(Service):
         self._put_ros(self.projection.due(time.monotonic()))
 
     def on_map_update(self, message: MapUpdate) -> None:
-        self.projection.map_update(self._stamp(message), [(e.id, e.x, e.y, e.heading) for e in message.experiences],
+        self.projection.map_update(message.header.seq, self._stamp(message),
+                                   [(e.id, e.x, e.y, e.heading) for e in message.experiences],
                                    [(k.source, k.target, k.loop_closure, k.accepted) for k in message.links])
 
     def on_grid_activity(self, message: GridActivity) -> None:
