@@ -25,7 +25,7 @@ import numpy as np
 from services.common.errors import DataError, GridslamError
 from services.evaluation.trajectory import Trajectory, read_tum
 from services.ros.messages import (
-    CAMERA_MAX_WIDTH, ROUTE_TOPIC, STAGES, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
+    CAMERA_MAX_WIDTH, ROUTE_TOPIC, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
 )
 
 log = logging.getLogger(__name__)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.expmap.graph import between, compose
+from services.common.geometry import between, compose
 from services.ros.messages import MapState, RosMessages, link_kind, planar_covariance_6x6, yaw_quaternion
 
 ODOM_FRAME, BASE_FRAME, MAP_FRAME, GRID_FRAME = "odom", "base_link", "map", "grid"

@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-from services.expmap.graph import between, compose  # noqa: E402
+from services.common.geometry import between, compose  # noqa: E402
 from services.ros import projection  # noqa: E402
 from services.ros.messages import RosMessages  # noqa: E402
 
