@@ -23,7 +23,7 @@ from services.common.geometry import wrap
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.gridcells.gridcode import GridCode
 from services.gridcells.integrator import DECODER_NAMES, DeadReckoning, GridCellIntegrator, auto_velocity_scale
-from services.gridcells.motion_io import MotionInput, add_noise, load_motion
+from services.evaluation.motion_io import MotionInput, add_noise, load_motion
 from services.gridcells.network import GridNetwork, NetworkParams
 from services.gridcells.simulation import (
     FiringMap,
