@@ -43,3 +43,16 @@ def adjoint(pose: Pose2) -> np.ndarray:
     x, y, th = pose
     c, s = math.cos(th), math.sin(th)
     return np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
+
+
+def planar_from_camera(matrix: np.ndarray) -> Pose2:
+    """The planar pose (x forward, y left, heading counter-clockwise) of a 4×4 pose in the camera
+    convention (x right, y down, z forward): forward = z, left = −x, and the heading of the
+    optical axis about the up axis (−y), atan2(−R[0,2], R[2,2]) (docs/sources.md, Conventions)."""
+    m = np.asarray(matrix, dtype=float)
+    return float(m[2, 3]), float(-m[0, 3]), math.atan2(-m[0, 2], m[2, 2])
+
+
+def planar_motion(before: np.ndarray, after: np.ndarray) -> Pose2:
+    """Body-frame motion (forward, left, yaw) between two 4×4 camera poses in the camera convention."""
+    return planar_from_camera(np.linalg.inv(before) @ after)

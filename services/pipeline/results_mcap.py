@@ -13,12 +13,13 @@ import numpy as np
 
 from services.common.errors import DataError, GridslamError
 from services.common.layout import MAP_LOG
+from services.common.observe import link_kind
 from services.evaluation.trajectory import read_tum
 from services.expmap.export import read_log
 from services.expmap.graph import ExperienceMap
 from services.pipeline.runner import ASSUMED, RunConfig
 from services.ros.mcap_export import MARKER_PERIOD_S, MCAP_NAME, STAGE_FILES, RunContent, write_run_mcap
-from services.ros.messages import CAMERA_MAX_WIDTH, camera_jpeg, link_kind
+from services.ros.messages import CAMERA_MAX_WIDTH, camera_jpeg
 from services.source.spec import bag_settings, open_source
 
 log = logging.getLogger(__name__)

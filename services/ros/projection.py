@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common.geometry import between, compose
-from services.ros.messages import MapState, RosMessages, link_kind, planar_covariance_6x6, yaw_quaternion
+from services.ros.messages import MapState, RosMessages, planar_covariance_6x6, yaw_quaternion
 
 ODOM_FRAME, BASE_FRAME, MAP_FRAME, GRID_FRAME = "odom", "base_link", "map", "grid"
 # Topic names, relative to the node's namespace (absolute ones stay).
@@ -129,7 +129,7 @@ class Projection:
 
     def map_update(self, seq: int, stamp: int, experiences, links) -> None:
         """Experiences created or moved at frame `seq` `[(id, x, y, heading)]`, links created
-        `[(source, target, closure, accepted)]`."""
+        `[(source, target, kind)]` (common.observe's link kinds)."""
         for experience, x, y, heading in experiences:
             self.experiences[experience] = (float(x), float(y), float(heading))
         moved = {experience for experience, *_ in experiences}
@@ -138,7 +138,7 @@ class Projection:
             if frame_seq >= seq and experience in moved:
                 self.frames[index] = (stamp_of, experience, between(self.experiences[experience], pose))
         if self.map_state.apply([(e, x, y) for e, x, y, _ in experiences],
-                                [(s, t, link_kind(closure, accepted)) for s, t, closure, accepted in links]):
+                                links):
             self.map_pending = stamp
             self.path_pending = stamp
 

@@ -45,7 +45,8 @@ from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
-from services.source.frames import Frame, FrameSource, planar_motion
+from services.common.geometry import planar_motion
+from services.source.frames import Frame, FrameSource
 from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
                                   parse_world_flags, world_keys)
 from services.source.synthetic import WorldConfig
