@@ -18,7 +18,8 @@ import dataclasses
 import logging
 from collections.abc import Iterator
 
-from services.source.frames import Frame, FrameSource, planar_motion
+from services.common.geometry import planar_motion
+from services.source.frames import Frame, FrameSource
 
 log = logging.getLogger(__name__)
 
