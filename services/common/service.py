@@ -72,11 +72,12 @@ class SeqTracker:
 
     last: int | None = None
 
-    def check(self, seq: int) -> tuple[int, bool]:
-        """(frames missing before `seq`, whether `seq` is stale)."""
+    def check(self, seq: int, stride: int = 1) -> tuple[int, bool]:
+        """(frames missing before `seq`, whether `seq` is stale); the stream's frames are `stride`
+        apart (Header.stride: a frame skipped on purpose is no gap)."""
         if self.last is not None and seq <= self.last:
             return 0, True
-        missing = 0 if self.last is None else seq - self.last - 1
+        missing = 0 if self.last is None else -(-(seq - self.last) // stride) - 1
         self.last = seq
         return missing, False
 
@@ -382,7 +383,8 @@ class Service:
         if subscription.follows is not None:
             if self._wait_for_previous(subscription, key, message):
                 return
-        elif self._recovering_until is not None and subscription.ordered and last is not None and seq > last + 1:
+        elif self._recovering_until is not None and subscription.ordered and last is not None and \
+                seq > last + message.header.stride:
             # Frames lost with the router come again after this one: it waits for them.
             if not subscription.held:
                 log.warning("%s: seq %d follows %d on %s after a reconnection; waiting up to %.0f s for the frames between",
@@ -417,7 +419,7 @@ class Service:
         """Whether `message` may be handled now: the frame it comes after has been."""
         last = subscription.seq.last
         if subscription.follows is None:
-            return last is None or message.header.seq <= last + 1
+            return last is None or message.header.seq <= last + message.header.stride
         previous = subscription.follows(message)
         return previous is None or (last is not None and previous <= last)
 
@@ -454,7 +456,7 @@ class Service:
     def _deliver(self, subscription: Subscription, key: str, message: Message) -> None:
         """Check `seq` (stale: replay the outputs; a gap: count it) and call the handler."""
         seq = message.header.seq
-        missing, stale = subscription.seq.check(seq)
+        missing, stale = subscription.seq.check(seq, message.header.stride)
         handler = subscription.handler
         if stale and subscription.drop_stale:
             self.counters.stale += 1
