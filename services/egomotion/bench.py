@@ -17,7 +17,6 @@ steadier figure.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import hashlib
 import json
@@ -35,6 +34,7 @@ import cv2
 import numpy as np
 
 from services.common.errors import ConfigError
+from services.common.settings import CommandParser
 from services.egomotion import ESTIMATORS, make_estimator
 from services.source.frames import Frame
 from services.egomotion.scene import BoxRoom, motion_pose, pinhole
@@ -176,7 +176,7 @@ def _print_profiles(names: list[str], count: int, threads: int, reference: Refer
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench egomotion", description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog="gridslam bench egomotion", description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=20, help="frames per run (default 20)")
     parser.add_argument("--repeats", type=int, default=2, help="runs per estimator and size (default 2)")
     parser.add_argument("--estimators", default=",".join(ESTIMATORS), help="comma-separated (default: all)")
