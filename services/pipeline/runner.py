@@ -343,7 +343,7 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
     if name == "gridcells":
         args += ["--integrator", config.integrator, "--checkpoint", str(folder / GRID_CHECKPOINT)]
         args += ["--decoder", config.decoder] if config.decoder else []
-        args += ["--step", config.step_source] if config.step_source else []
+        args += ["--step-source", config.step_source] if config.step_source else []
         args += ["--modules", str(config.modules)] if config.modules else []
         args += ["--heading", config.heading] if config.heading else []
     if name == "viewer":
@@ -377,7 +377,7 @@ def graph_args(config: RunConfig) -> list[str]:
 def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
-            "--source", config.source, "--start", str(start), "--origin", str(origin_of(config)), "--step", str(config.step),
+            "--source", config.source, "--start", str(start), "--origin", str(origin_of(config)), "--stride", str(config.step),
             "--window", str(source_window(config)), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
     if config.egomotion_instances > 1:
         # Instances work in parallel only on blocks already sent: a window fitted to one frame's
