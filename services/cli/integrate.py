@@ -8,7 +8,7 @@ from pathlib import Path
 
 from services.common.settings import add_renamed_flag
 from services.evaluation.results import format_table
-from services.gridcells.motion_io import FORMATS
+from services.evaluation.motion_io import FORMATS
 
 DECODERS = ("paper", "fft", "subpixel", "calibrated")  # = integrator.DECODER_NAMES (a test checks), kept literal: scipy loads only when a command runs
 

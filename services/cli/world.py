@@ -1,6 +1,6 @@
 """`gridslam world`: describe a synthetic world: its layout, route, revisits and look-alike places.
 
-The revisits come from the ground truth (services/source/synthetic.py, ``revisits``): each is a
+The revisits come from the ground truth (services/source/world/revisits.py): each is a
 stretch of frames that passes a place the route passed before, in the same or the opposite
 direction; a look-alike pass is one through a copy of a place seen elsewhere (campus layout).
 """
@@ -31,7 +31,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from services.source.synthetic import SyntheticWorld, revisits
+    from services.source.synthetic import SyntheticWorld
+    from services.source.world.revisits import revisits
 
     world = open_source(args.source, preset=args.preset, mono=True, world=parse_world_flags(args.world, args.laps))
     if not isinstance(world, SyntheticWorld):
@@ -70,7 +71,7 @@ def run(args) -> int:
         print(f"wrote {args.json}")
     if args.plot:
         from services.evaluation.plots import plot_layout
-        from services.source import campus
+        from services.source.world import campus
 
         regions = {}
         if world.layout is not None:

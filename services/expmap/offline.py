@@ -32,7 +32,7 @@ from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.export import corrected_trajectory, graph_dict, odometry_trajectory
 from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams, MapState
 from services.expmap.store import MapStore, Step
-from services.gridcells.motion_io import add_noise, load_motion
+from services.evaluation.motion_io import add_noise, load_motion
 from services.gridcells.offline import run_deadreckoning, run_grid
 from services.loopclosure.detector import Confirmed, LoopClosureDetector
 

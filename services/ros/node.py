@@ -27,6 +27,7 @@ from schemas import GridActivity, GridPose, MapPose, MapUpdate
 from services.common.config import load_config
 from services.common.convert import image_from_msg
 from services.common.errors import ConfigError
+from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import add_flag, config_fields, params_of
@@ -99,11 +100,9 @@ class Ros2Service(Service):
         self.node = RosNode(self.session, NODE_NAME, normalise_namespace(p.ros_namespace), p.ros_domain_id,
                             p.ros_distro, p.ros2_keys, hashes=self.ros.rihs01)
         self.publishers = {topic: self.node.publisher(topic, msgtype, qos) for topic, (msgtype, qos) in TOPICS.items()}
-        # drop_stale=False: a seq going backwards is a new run (the projection starts afresh).
-        self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
-        self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
-        self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
-        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
+        # A seq going backwards is a new run (the projection starts afresh).
+        observe(self, {"grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose, "map/update": self.on_map_update,
+                       "grid/activity": self.on_grid_activity})
         log.info("ros2: node %s%s in ROS domain %d (%s, %s keys): %s", self.node.namespace.rstrip("/") + "/", NODE_NAME,
                  p.ros_domain_id, p.ros_distro, p.ros2_keys, ", ".join(e.topic for e in self.node.endpoints))
 
@@ -139,8 +138,8 @@ class Ros2Service(Service):
         self._put_ros(self.projection.due(time.monotonic()))
 
     def on_map_update(self, message: MapUpdate) -> None:
-        self.projection.map_update(self._stamp(message), [(e.id, e.x, e.y, e.heading) for e in message.experiences],
-                                   [(k.source, k.target, k.loop_closure, k.accepted) for k in message.links])
+        self.projection.map_update(message.header.seq, self._stamp(message),
+                                   [(e.id, e.x, e.y, e.heading) for e in message.experiences], map_items(message)[1])
 
     def on_grid_activity(self, message: GridActivity) -> None:
         pixels = image_from_msg(message.image)

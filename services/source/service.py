@@ -46,7 +46,8 @@ from services.common.service import Service
 from services.common.settings import add_renamed_flag
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
-from services.source.frames import Frame, FrameSource, planar_motion
+from services.common.geometry import planar_motion
+from services.source.frames import Frame, FrameSource
 from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
                                   parse_world_flags, world_keys)
 from services.source.synthetic import WorldConfig

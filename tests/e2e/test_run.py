@@ -5,7 +5,6 @@ import json
 import subprocess
 import sys
 
-import pytest
 
 from services.evaluation.trajectory import read_kitti, read_tum
 from tests.netutil import REPO, endpoint, free_port, start_router, stop

@@ -14,7 +14,7 @@ from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule
 from services.loopclosure.detector import MemoryKeyframes
 from services.loopclosure.sequence import SequenceParams, Sequences
 from services.loopclosure.service import LoopClosureConfig
-from services.loopclosure.vocabulary import Vocabulary, VocabularyError, default_vocabulary, hamming, train
+from services.loopclosure.vocabulary import Vocabulary, VocabularyError, default_vocabulary, train
 
 
 def random_descriptors(rng, count: int) -> np.ndarray:
