@@ -40,11 +40,12 @@ class SeqTracker:
 
     last: int | None = None
 
-    def check(self, seq: int) -> tuple[int, bool]:
-        """(frames missing before `seq`, whether `seq` is stale)."""
+    def check(self, seq: int, stride: int = 1) -> tuple[int, bool]:
+        """(frames missing before `seq`, whether `seq` is stale); the stream's frames are `stride`
+        apart (Header.stride: a frame skipped on purpose is no gap)."""
         if self.last is not None and seq <= self.last:
             return 0, True
-        missing = 0 if self.last is None else seq - self.last - 1
+        missing = 0 if self.last is None else -(-(seq - self.last) // stride) - 1
         self.last = seq
         return missing, False
 
@@ -71,12 +72,13 @@ class _Stream:
     seq: SeqTracker = field(default_factory=SeqTracker)
     held: dict[int, tuple[int | None, Any]] = field(default_factory=dict)   # seq → (previous, item)
     held_since: float | None = None   # when the wait for a `follows` link began
+    stride: int = 1   # seqs between two frames of the stream (Header.stride), as its last message said
 
     def follows_on(self, seq: int, previous: int | None) -> bool:
         """Whether a message may be delivered now: the frame it comes after has been."""
         last = self.seq.last
         if not self.follows:
-            return last is None or seq <= last + 1
+            return last is None or seq <= last + self.stride
         return previous is None or (last is not None and previous <= last)
 
 
@@ -113,15 +115,17 @@ class Sequencer:
         self._recovering_until = now + self.params.recovery
 
     def offer(self, stream: int, seq: int, previous: int | None, item: Any, now: float,
-              key: str | None = None) -> list[Delivery]:
+              key: str | None = None, stride: int = 1) -> list[Delivery]:
         """A message arrived (`previous`: the seq it follows, where its stream's messages name
-        one; `key`: where it came from, for log lines): what to deliver now, in order."""
+        one; `key`: where it came from, for log lines; `stride`: its Header.stride): what to
+        deliver now, in order."""
         s = self._streams[stream]
+        s.stride = stride
         last = s.seq.last
         if s.follows:
             if not (s.follows_on(seq, previous) or (last is not None and seq <= last)):
                 return self._hold(stream, s, seq, previous, item, now)
-        elif self._recovering_until is not None and s.ordered and last is not None and seq > last + 1:
+        elif self._recovering_until is not None and s.ordered and last is not None and seq > last + stride:
             # Frames lost with the router come again after this one: it waits for them.
             if not s.held:
                 log.warning("%s: seq %d follows %d on %s after a reconnection; waiting up to %.0f s for the frames between",
@@ -183,5 +187,5 @@ class Sequencer:
 
     @staticmethod
     def _deliver(index: int, s: _Stream, seq: int, item: Any) -> Delivery:
-        missing, stale = s.seq.check(seq)
+        missing, stale = s.seq.check(seq, s.stride)
         return Delivery(index, seq, item, missing=missing, stale=stale)

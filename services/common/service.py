@@ -384,7 +384,7 @@ class Service:
         self.counters.received += 1
         previous = subscription.follows(message) if subscription.follows is not None else None
         for delivery in self._order.offer(subscription.stream, message.header.seq, previous, (key, message),
-                                          time.monotonic(), key):
+                                          time.monotonic(), key, message.header.stride):
             self._deliver(delivery)
 
     def _deliver(self, delivery: Delivery) -> None:

@@ -42,6 +42,7 @@ from services.common.convert import image_to_msg, matrix_to_pose
 from services.common.health import live_services, statuses
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
+from services.common.settings import add_renamed_flag
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
 from services.source.frames import Frame, FrameSource
@@ -299,7 +300,11 @@ class SourceService(Service):
     def _read(self) -> CameraFrame | None:
         """The next frame's message (None after the last)."""
         frame = self.feed.next()
-        return frame_message(frame, self.header(frame.seq, frame.stamp, "camera")) if frame is not None else None
+        if frame is None:
+            return None
+        # A replay taking every step-th frame numbers them as its source does: step apart, no gap.
+        header = self.header(frame.seq, frame.stamp, "camera").model_copy(update={"stride": 1 if self.live else self.config.step})
+        return frame_message(frame, header)
 
     def _read_ahead(self) -> None:
         """While the window is full, read (decode, render) the next frame of a replay, so that it
@@ -388,7 +393,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start", type=int, help="first frame index")
     parser.add_argument("--origin", type=int, help="frame whose pose is the ground truth's origin (default: --start)")
     parser.add_argument("--stop", type=int, help="frame index to stop before")
-    parser.add_argument("--step", type=int, help="take every step-th frame")
+    parser.add_argument("--stride", dest="step", type=int, metavar="N", help="take every N-th frame (default 1)")
+    add_renamed_flag(parser, "--step", "--stride", dest="step", type=int)
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
     parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control); with "
                                                    "the adaptive window, the most")

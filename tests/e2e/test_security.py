@@ -201,7 +201,7 @@ def test_sharding_and_the_refusal_pass_access_control(gridcells, certs):
         stop(second)   # still running if it was not refused
     assert second.returncode == 1 and f"gridcells of robot {ROBOT} is already running (instance {instance})" in err, err
 
-    estimators = [start(["service", "egomotion", "--estimator", "passthrough", "--instance", name, *client,
+    estimators = [start(["service", "egomotion", "--estimator", "passthrough", "--instances", "2", "--instance", name, *client,
                          *cfg_flags(certs, "egomotion")]) for name in ("one", "two")]
     sessions = [open_session(client_runtime(port, CLIENT_MTLS, certs, role)) for role in ("source", "operator")]
     try:
