@@ -34,17 +34,19 @@ ENV_PREFIX = "GRIDSLAM_"
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
-def read_toml(path: Path) -> dict[str, Any]:
-    """Parse a TOML file; a missing or malformed file is a one-line ConfigError naming it."""
+def read_toml(path: str | Path, what: str = "config file", error: type[Exception] = ConfigError) -> dict[str, Any]:
+    """Parse a TOML file (a config, preset or calibration file: ``what``, in messages): the one
+    TOML reader. A missing or malformed file is a one-line ``error`` (ConfigError, or the
+    caller's own kind of it) naming the file."""
     try:
         with open(path, "rb") as handle:
             return tomllib.load(handle)
     except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except OSError as error:
-        raise ConfigError(f"{path}: cannot read config file ({error.strerror})") from None
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: not valid TOML ({error})") from None
+        raise error(f"{path}: {what} not found") from None
+    except OSError as problem:
+        raise error(f"{path}: cannot read {what} ({problem.strerror})") from None
+    except tomllib.TOMLDecodeError as problem:
+        raise error(f"{path}: not valid TOML ({problem})") from None
 
 
 def presets(service: str) -> list[str]:

@@ -13,7 +13,6 @@ shape and overrides the preset key by key. docs/egomotion.md describes every par
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -70,15 +69,9 @@ def preset_names() -> list[str]:
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """A preset or config TOML file, shape-checked: optional ``estimator`` string and one
     table per estimator name."""
-    path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            table = tomllib.load(stream)
-    except FileNotFoundError:
-        raise EstimatorConfigError(f"{path}: config file not found") from None
-    except (OSError, tomllib.TOMLDecodeError) as error:
-        raise EstimatorConfigError(f"{path}: not a readable TOML file: {error}") from None
-    return check_config_table(table, str(path))
+    from services.common.config import read_toml
+
+    return check_config_table(read_toml(path, error=EstimatorConfigError), str(path))
 
 
 def check_config_table(table: dict[str, Any], where: str) -> dict[str, Any]:
