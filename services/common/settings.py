@@ -89,7 +89,8 @@ def add_flag(parser, params_type: type, name: str, *, prefix: str = "", flag: st
         kwargs["choices"] = list(meta["choices"])
     elif annotation in (int, float):
         kwargs["type"] = annotation
-    parser.add_argument(flag or "--" + (prefix + name).replace("_", "-"), dest=prefix + name, **{**kwargs, **extra})
+    kwargs["dest"] = prefix + name
+    parser.add_argument(flag or "--" + (prefix + name).replace("_", "-"), **{**kwargs, **extra})
 
 
 class CommandParser(argparse.ArgumentParser):

@@ -22,6 +22,7 @@ from services.common.layout import add_map_reuse_arguments, map_files, session_b
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.common.settings import config_fields, params_of
+from services.common.stages import CLOSURES
 from services.loopclosure.bow import BowParams
 from services.loopclosure.consistency import ConsistencyParams
 from services.loopclosure.detector import Confirmed, LoopClosureDetector, MeasuredVote, Measurement
@@ -61,7 +62,7 @@ class _LoopClosureFields(BaseModel):
     recent_frames: int = Field(30, ge=1, description="Templates stored fewer frames ago are not loop closures.")
     confirm_run: bool = Field(True, description="A confirmed run of votes confirms the closures of its earlier frames "
                                                 "too (false: only the newest frame's, as RatSLAM).")
-    closure: Literal["metric", "ratslam"] = Field(
+    closure: Literal[CLOSURES] = Field(
         "metric", description="metric: measure each closure's relative pose; ratslam: no measurement (the map snaps).")
     geometry: Literal["auto", "scanline"] = Field(
         "auto", description="auto: the relative pose from the images (stereo PnP, or mono essential matrix); scanline: "
@@ -266,7 +267,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", help="view-template parameters for a dataset: synthetic, nubot, kitti, stlucia")
     parser.add_argument("--match-threshold", type=float, help="template match distance threshold")
     parser.add_argument("--store", type=Path, help="journal of templates; a restart resumes from it")
-    parser.add_argument("--closure", choices=["metric", "ratslam"],
+    parser.add_argument("--closure", choices=CLOSURES,
                         help="measure each closure's relative pose (metric, default) or not (ratslam: the map snaps)")
     add_place_recognition_argument(parser)
     add_map_reuse_arguments(parser)

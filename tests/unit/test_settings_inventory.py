@@ -35,7 +35,7 @@ KEYS = {
         "new_experience_distance optimizer closure correction relax_passes relax_every_frame "
         "odometry_translation_sigma odometry_heading_sigma odometry_turn_sigma odometry_translation_floor "
         "odometry_heading_floor snap_translation_sigma snap_heading_sigma mono_scale_sigma robust_kernel kernel_width "
-        "closure_gate closure_iterations store checkpoint_updates checkpoint_frames out map localize"),
+        "closure_gate closure_iterations join_closures join_gate store checkpoint_updates checkpoint_frames out map localize"),
     "viewer": "allow_remote http rate_hz map_rate_hz image_rate_hz max_points camera_width max_clients",
     "foxglove": "allow_remote host port map_rate_hz backlog history",
     "ros2": "path_rate_hz map_rate_hz ros_domain_id ros_namespace ros_distro ros2_keys",
@@ -219,3 +219,14 @@ def test_a_key_that_never_existed_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="decoderr"):
         load_config(GridCellsConfig, "gridcells", config_file=path, environ={})
 
+
+
+def test_the_choice_lists_name_what_the_cores_hold():
+    from services.common import stages
+    from services.egomotion import ESTIMATORS
+    from services.gridcells.decoders import DECODERS
+
+    assert tuple(ESTIMATORS) == stages.ESTIMATORS
+    assert (*DECODERS, "calibrated") == stages.DECODERS
+    from services.gridcells.config import DIRECTION_SIGMA
+    assert tuple(DIRECTION_SIGMA) == stages.DECODERS
