@@ -230,3 +230,15 @@ def test_the_choice_lists_name_what_the_cores_hold():
     assert (*DECODERS, "calibrated") == stages.DECODERS
     from services.gridcells.config import DIRECTION_SIGMA
     assert tuple(DIRECTION_SIGMA) == stages.DECODERS
+
+
+def test_the_process_settings_are_read_once_and_checked(tmp_path):
+    from services.common.environment import VARIABLES, cache_folder, process_params
+
+    assert set(VARIABLES) <= set(ENVIRONMENT.split())
+    assert process_params({"GRIDSLAM_FFT": " SciPy "}).fft == "scipy"
+    with pytest.raises(ConfigError, match="GRIDSLAM_FFT='fast': choose one of auto, fftw, scipy"):
+        process_params({"GRIDSLAM_FFT": "fast"})
+    assert cache_folder({"GRIDSLAM_CACHE": str(tmp_path)}) == tmp_path
+    assert cache_folder({"XDG_CACHE_HOME": str(tmp_path)}) == tmp_path / "gridslam"
+    assert cache_folder({}) == Path.home() / ".cache" / "gridslam"
