@@ -102,12 +102,7 @@ def preset_values(service: str, preset: str | Path) -> dict[str, Any]:
     if is_preset_file(preset):
         base, tables = read_preset_file(preset)
         values = preset_values(service, base) if base is not None and has_named_preset(service, base) else {}
-        for key, value in tables.get(service, {}).items():
-            if isinstance(value, dict) and isinstance(values.get(key), dict):
-                values[key] = {**values[key], **value}
-            else:
-                values[key] = value
-        return values
+        return merge_tables(values, tables.get(service, {}))
     if not has_named_preset(service, str(preset)):
         available = ", ".join(presets(service)) or "none"
         raise ConfigError(f"unknown preset {preset!r} for {service} (available: {available})")
@@ -143,6 +138,17 @@ def describe_preset(preset: str | Path, services: list[str]) -> str:
     return f"preset file {preset}: " + "; ".join(parts)
 
 
+def merge_tables(values: dict[str, Any], table: Mapping[str, Any]) -> dict[str, Any]:
+    """``table``'s keys over ``values``, one level deep: a sub-table (``[egomotion.stereo]``)
+    replaces single keys of the one below it, as a preset file's tables do."""
+    for key, value in table.items():
+        if isinstance(value, dict) and isinstance(values.get(key), dict):
+            values[key] = {**values[key], **value}
+        else:
+            values[key] = value
+    return values
+
+
 def env_values(section: str, model: type[BaseModel], environ: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Fields of `model` set through `GRIDSLAM_<SECTION>_<FIELD>` environment variables."""
     environ = os.environ if environ is None else environ
@@ -175,13 +181,13 @@ def load_config(
     sources: list[str] = []
     given: dict[str, str] = {}   # field → the flag or environment variable that gave it
     if preset:
-        values.update(preset_values(section, preset))
+        merge_tables(values, preset_values(section, preset))
         sources.append(f"preset file {preset}" if is_preset_file(preset) else f"preset {preset!r}")
     if config_file is not None:
         table = read_toml(config_file).get(section, {})
         if not isinstance(table, dict):
             raise ConfigError(f"{config_file}: [{section}] must be a table")
-        values.update(table)
+        merge_tables(values, table)
         sources.append(str(config_file))
     from_environment = env_values(section, model, environ)
     values.update(from_environment)

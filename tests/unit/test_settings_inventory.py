@@ -161,6 +161,8 @@ def test_the_egomotion_tables(tmp_path):
         sharding, block = resolve_sharding(name, config_file=path, environ={})
         assert (sharding.instances, sharding.shard_block) == (2, 3)
     assert set(EGOMOTION_KEYS.split()) == {"estimator", *(f.name for f in dataclasses.fields(sharding))}
+    from services.egomotion import EgomotionConfig
+    assert set(EgomotionConfig.model_fields) == {*EGOMOTION_KEYS.split(), *ESTIMATOR_KEYS}
 
 
 def test_the_closure_geometry_keys(tmp_path):
