@@ -32,8 +32,8 @@ from services.common.journal import SESSION, continue_session
 from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.common.settings import config_fields, params_of
-from services.expmap.graph import CLOSURES, MOVED, OPTIMIZERS, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
+from services.common.settings import add_flag, config_fields, params_of
+from services.expmap.graph import MOVED, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
 from services.expmap.route import shortest_route
 from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, header
 
@@ -369,11 +369,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_map_arguments(parser: argparse.ArgumentParser) -> None:
     """The map's model, shared by every command that builds a map (run, demo, map build, the service)."""
-    parser.add_argument("--closure", choices=CLOSURES,
-                        help="what a closure asserts: the measured relative pose (metric, default) or that the robot "
-                             "is at the matched experience (ratslam)")
-    parser.add_argument("--map-optimizer", choices=OPTIMIZERS,
-                        help="what places the experiences: a pose graph (gtsam, default) or RatSLAM's relaxation")
+    add_flag(parser, MapParams, "closure")
+    add_flag(parser, MapParams, "optimizer", flag="--map-optimizer", dest="map_optimizer")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:

@@ -21,7 +21,7 @@ from services.common.journal import SESSION, Journal, continue_session
 from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.common.settings import config_fields, params_of
+from services.common.settings import add_field_flag, config_fields, params_of
 from services.common.stages import CLOSURES
 from services.loopclosure.bow import BowParams
 from services.loopclosure.consistency import ConsistencyParams
@@ -265,10 +265,9 @@ def add_place_recognition_argument(parser: argparse.ArgumentParser) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", help="view-template parameters for a dataset: synthetic, nubot, kitti, stlucia")
-    parser.add_argument("--match-threshold", type=float, help="template match distance threshold")
-    parser.add_argument("--store", type=Path, help="journal of templates; a restart resumes from it")
-    parser.add_argument("--closure", choices=CLOSURES,
-                        help="measure each closure's relative pose (metric, default) or not (ratslam: the map snaps)")
+    add_field_flag(parser, LoopClosureConfig, "match_threshold", metavar="D")
+    add_field_flag(parser, LoopClosureConfig, "store", metavar="FILE")
+    add_field_flag(parser, LoopClosureConfig, "closure")
     add_place_recognition_argument(parser)
     add_map_reuse_arguments(parser)
 
