@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from schemas import CameraFrame, LoopClosure, PlanarIncrement, ViewTemplate
 from services.common.config import load_config
@@ -34,6 +34,10 @@ from services.loopclosure.templates import TemplateParams, ViewMatch
 from services.source.frames import Camera
 
 log = logging.getLogger(__name__)
+
+
+GEOMETRY_PREFIX = "geometry_"   # the closure geometry's keys (GeometryParams): geometry_features, geometry_ratio, ...
+GEOMETRY_KEYS = tuple(field.name for field in dataclasses.fields(GeometryParams))
 
 
 class _LoopClosureFields(BaseModel):
@@ -70,8 +74,6 @@ class _LoopClosureFields(BaseModel):
     scanline_translation_sigma: float = Field(
         0.5, gt=0, description="scanline measurement: how far from the matched place the robot may be, m (std dev).")
     scanline_heading_sigma: float = Field(0.05, gt=0, description="scanline measurement: std dev of its relative angle, rad.")
-    geometry_params: dict[str, Any] = Field(
-        default_factory=dict, description="Keyframe and closure-geometry parameters (GeometryParams, docs/closure_geometry.md).")
     keyframe_store_mb: float = Field(512.0, gt=0, description="Largest size of the keyframe file beside the journal, MiB.")
     map: Path | None = Field(
         None, description="A results folder whose map to start from (its places and keyframes, read only): this run is "
@@ -99,14 +101,40 @@ class _LoopClosureFields(BaseModel):
         return ConsistencyParams(window=self.window, min_votes=self.min_votes, tolerance=self.tolerance,
                                  recent_frames=self.recent_frames, confirm_run=self.confirm_run)
 
-    def geometry_parameters(self) -> GeometryParams:
-        known = {field.name for field in dataclasses.fields(GeometryParams)}
-        unknown = sorted(set(self.geometry_params) - known)
+    @model_validator(mode="before")
+    @classmethod
+    def _geometry_table(cls, values: Any) -> Any:
+        """The closure geometry's keys given as one table, `geometry_params = {features = 300}`
+        (the older spelling of `geometry_features = 300`): still read, and noted."""
+        if not isinstance(values, dict) or "geometry_params" not in values:
+            return values
+        values = dict(values)
+        table = values.pop("geometry_params")
+        if not isinstance(table, dict):
+            raise ConfigError(f"[loopclosure] geometry_params must be a table, got {table!r}")
+        unknown = sorted(set(table) - set(GEOMETRY_KEYS))
         if unknown:
-            raise ConfigError(f"[loopclosure] geometry_params: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in self.geometry_params.items()}
-        params = GeometryParams(**values)
+            raise ConfigError(f"[loopclosure] geometry_params: unknown key(s) {', '.join(unknown)}; known: "
+                              f"{', '.join(sorted(GEOMETRY_KEYS))}")
+        if table:
+            log.warning("[loopclosure] geometry_params is now spelled as single keys (%s); the old spelling still "
+                        "works but will go", ", ".join(f"{GEOMETRY_PREFIX}{key}" for key in table))
+        for key, value in table.items():
+            values.setdefault(GEOMETRY_PREFIX + key, value)
+        return values
+
+    def geometry_parameters(self) -> GeometryParams:
+        params = params_of(GeometryParams, self, GEOMETRY_PREFIX)
         params.check()
+        return params
+
+    def journal_params(self) -> dict[str, Any]:
+        """The settings a journal is made with (its header), in the shape journals have always had
+        them: the closure geometry's as the table `geometry_params` of the keys given."""
+        geometry = {GEOMETRY_PREFIX + key for key in GEOMETRY_KEYS}
+        params = self.model_dump(mode="json", exclude={"store", "keyframe_store_mb", "map", "localize", *geometry})
+        given = self.model_dump(mode="json", include=geometry & self.model_fields_set)
+        params["geometry_params"] = {key.removeprefix(GEOMETRY_PREFIX): value for key, value in given.items()}
         return params
 
     def detector(self, keyframes=None) -> LoopClosureDetector:
@@ -117,7 +145,8 @@ class _LoopClosureFields(BaseModel):
 
 
 LoopClosureConfig = create_model("LoopClosureConfig", __base__=_LoopClosureFields, __doc__=_LoopClosureFields.__doc__,
-                                 **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"))
+                                 **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"),
+                                 **config_fields(GeometryParams, GEOMETRY_PREFIX))
 
 
 def camera_of(message: CameraFrame, image: np.ndarray) -> Camera | None:
@@ -157,7 +186,7 @@ class LoopClosureService(Service):
         self.base = 0                        # the first frame number of this session
         self.journal = None
         if config.store is not None:
-            params = config.model_dump(mode="json", exclude={"store", "keyframe_store_mb", "map", "localize"})
+            params = config.journal_params()
             vocabulary = getattr(self.detector.places, "vocabulary_id", None)
             header = {"format": JOURNAL_FORMAT, "version": JOURNAL_VERSION, "params": params,
                       **({"vocabulary": vocabulary} if vocabulary else {})}

@@ -119,12 +119,20 @@ def toml_value(value):
 REQUIRED = {"source": {"source": "synthetic:0"}, "run": {"source": "synthetic:0"}}
 
 
+# Keys read in an older spelling (a test below loads each): section → key.
+OLD_SPELLINGS = {"loopclosure": {"geometry_params"}}   # now geometry_<key> (GEOMETRY_KEYS)
+
+
+def keys(section: str) -> list[str]:
+    return [key for key in KEYS[section].split() if key not in OLD_SPELLINGS.get(section, ())]
+
+
 @pytest.mark.parametrize("section", sorted(KEYS))
 def test_every_key_of_every_table_is_read(section, tmp_path):
     model = model_of(section)
-    unknown = sorted(set(KEYS[section].split()) - set(model.model_fields))
+    unknown = sorted(set(keys(section)) - set(model.model_fields))
     assert unknown == [], f"[{section}] keys gone: {unknown}"
-    for key in KEYS[section].split():
+    for key in keys(section):
         field = model.model_fields[key]
         value = REQUIRED.get(section, {}).get(key, field.get_default(call_default_factory=True))
         text = toml_value(value)
@@ -140,7 +148,7 @@ def test_every_key_of_every_table_is_read(section, tmp_path):
 @pytest.mark.parametrize("section", sorted(KEYS))
 def test_every_field_has_its_environment_variable(section):
     model = model_of(section)
-    for key in KEYS[section].split():
+    for key in keys(section):
         variable = f"GRIDSLAM_{section}_{key}".upper()
         assert key in env_values(section, model, {variable: "x"}), variable
 
@@ -176,6 +184,19 @@ def test_the_closure_geometry_keys(tmp_path):
         f"{key} = {toml_value(declared[key])}\n" for key in GEOMETRY_KEYS.split()))
     config = load_config(LoopClosureConfig, "loopclosure", config_file=path, environ={})
     assert config.geometry_parameters() == GeometryParams()
+    # The older spelling, a table, and the single keys: the same settings, and the same journal header.
+    path.write_text("[loopclosure]\ngeometry_features = 300\ngeometry_grid = [4, 3]\n")
+    single = load_config(LoopClosureConfig, "loopclosure", config_file=path, environ={})
+    path.write_text("[loopclosure.geometry_params]\nfeatures = 300\ngrid = [4, 3]\n")
+    table = load_config(LoopClosureConfig, "loopclosure", config_file=path, environ={})
+    assert single.geometry_parameters() == table.geometry_parameters() == GeometryParams(features=300, grid=(4, 3))
+    header = table.journal_params()
+    assert header == single.journal_params() and header["geometry_params"] == {"features": 300, "grid": [4, 3]}
+    excluded = {"store", "keyframe_store_mb", "map", "localize"}
+    assert set(header) == set(KEYS["loopclosure"].split()) - excluded   # the header journals have always had
+    path.write_text("[loopclosure.geometry_params]\nfeaturez = 300\n")
+    with pytest.raises(ConfigError, match="geometry_params: unknown key.s. featurez"):
+        load_config(LoopClosureConfig, "loopclosure", config_file=path, environ={})
 
 
 def test_the_calibration_keys(tmp_path):
