@@ -48,24 +48,6 @@ class _LoopClosureFields(BaseModel):
     place_recognition: Literal[PLACE_RECOGNITIONS] = Field(
         DEFAULT_PLACE_RECOGNITION, description="How a frame's place is recognised: scanline (RatSLAM's view templates, the paper's model), "
                            "bow (a bag of binary words, verified geometrically) or sequence (SeqSLAM).")
-    crop: tuple[float, float, float, float] = Field((0.0, 1.0, 0.0, 1.0), description="Crop x0, x1, y0, y1 as fractions of the image.")
-    width: int = Field(60, ge=4, description="Template columns.")
-    height: int = Field(10, ge=1, description="Template rows.")
-    normalisation: float = Field(0.4, ge=0, description="Mean intensity each template is scaled to (0: none).")
-    shift_range: int = Field(5, ge=0, description="Column shifts tried in each direction.")
-    match_threshold: float = Field(0.085, gt=0, description="Distance below which a view matches a stored template.")
-    fov_deg: float = Field(53.0, gt=0, le=360, description="Horizontal field of view of the image, degrees.")
-    matcher: Literal["index", "exhaustive"] = Field(
-        "index", description="index: candidates from a nearest-neighbour index, verified exactly; exhaustive: every template.")
-    candidates: int = Field(16, ge=1, description="Nearest templates per shift taken from the index, then compared exactly.")
-    index_rows: int = Field(3, ge=1, description="Row bands of the index's template descriptor.")
-    window: int = Field(10, ge=1, description="Consecutive frames of the consistency rule.")
-    min_votes: int = Field(7, ge=1, description="Consistent possible closures needed in the window (paper: more than six).")
-    tolerance: int = Field(6, ge=0, description="Frames by which the votes' frame offsets may disagree (min_votes − 1: "
-                                                "a robot that stops at a revisited place).")
-    recent_frames: int = Field(30, ge=1, description="Templates stored fewer frames ago are not loop closures.")
-    confirm_run: bool = Field(True, description="A confirmed run of votes confirms the closures of its earlier frames "
-                                                "too (false: only the newest frame's, as RatSLAM).")
     closure: Literal[CLOSURES] = Field(
         "metric", description="metric: measure each closure's relative pose; ratslam: no measurement (the map snaps).")
     geometry: Literal["auto", "scanline"] = Field(
@@ -84,9 +66,7 @@ class _LoopClosureFields(BaseModel):
                           "Keyframes go beside it (same name, suffix .keyframes).")
 
     def template_params(self) -> TemplateParams:
-        return TemplateParams(crop=self.crop, width=self.width, height=self.height, normalisation=self.normalisation,
-                              shift_range=self.shift_range, match_threshold=self.match_threshold, fov_deg=self.fov_deg,
-                              matcher=self.matcher, candidates=self.candidates, index_rows=self.index_rows)
+        return params_of(TemplateParams, self)
 
     def place_params(self):
         """The chosen place recogniser's parameters."""
@@ -98,8 +78,7 @@ class _LoopClosureFields(BaseModel):
         return params
 
     def consistency_params(self) -> ConsistencyParams:
-        return ConsistencyParams(window=self.window, min_votes=self.min_votes, tolerance=self.tolerance,
-                                 recent_frames=self.recent_frames, confirm_run=self.confirm_run)
+        return params_of(ConsistencyParams, self)
 
     @model_validator(mode="before")
     @classmethod
@@ -145,6 +124,7 @@ class _LoopClosureFields(BaseModel):
 
 
 LoopClosureConfig = create_model("LoopClosureConfig", __base__=_LoopClosureFields, __doc__=_LoopClosureFields.__doc__,
+                                 **config_fields(TemplateParams), **config_fields(ConsistencyParams),
                                  **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"),
                                  **config_fields(GeometryParams, GEOMETRY_PREFIX))
 
