@@ -201,8 +201,8 @@ def load_config(
         first = error.errors()[0]
         where = ".".join(str(part) for part in first["loc"]) or section
         name = str(first["loc"][0]) if first["loc"] else None
+        got = f", got {first['input']!r}" if "input" in first and not isinstance(first["input"], dict) else ""
         if name in given:
-            got = f", got {first['input']!r}" if "input" in first and not isinstance(first["input"], dict) else ""
             raise ConfigError(f"{given[name]}: {first['msg']}{got} ([{section}] {name})") from None
         origin = f" (from {', '.join(sources)})" if sources else ""
-        raise ConfigError(f"[{section}] {where}: {first['msg']}{origin}") from None
+        raise ConfigError(f"[{section}] {where}: {first['msg']}{got}{origin}") from None
