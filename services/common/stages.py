@@ -14,6 +14,7 @@ DECODERS = ("paper", "fft", "subpixel", "calibrated")         # services/gridcel
 STEP_SOURCES = ("odometry", "lattice")
 HEADING_MODELS = ("sum", "ring")
 CLOSURES = ("metric", "ratslam")   # what a closure asserts (loopclosure measures it, expmap weighs it)
+MAP_OPTIMIZERS = ("gtsam", "ratslam")   # what places the experiences (services/expmap/optimizers.py)
 
 
 @dataclass(frozen=True)

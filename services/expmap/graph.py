@@ -48,9 +48,9 @@ import numpy as np
 
 from services.common.geometry import adjoint, between, compose, inverse
 from services.common.settings import check, setting
-from services.common.stages import CLOSURES
+from services.common.stages import CLOSURES, MAP_OPTIMIZERS
 
-OPTIMIZERS = ("gtsam", "ratslam")
+OPTIMIZERS = MAP_OPTIMIZERS
 KERNELS = ("cauchy", "geman_mcclure", "dcs", "huber", "none")
 METHODS = ("stereo", "mono", "scanline")
 FATES = ("accepted", "rejected", "unmeasured", "unmatched")   # what becomes of a confirmed closure

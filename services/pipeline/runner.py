@@ -32,7 +32,7 @@ from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_
                                      session_base)
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
 from services.common.settings import config_fields
-from services.common.stages import ESTIMATORS, INTEGRATORS, GridStageParams
+from services.common.stages import CLOSURES, ESTIMATORS, INTEGRATORS, MAP_OPTIMIZERS, GridStageParams
 from services.egomotion import resolve_estimator, resolve_sharding
 from services.evaluation.results import results_dir, write_config
 from services.evaluation.trajectory import read_tum
@@ -101,10 +101,10 @@ class _RunFields(BaseModel):
                                     "runs the estimator frame after frame; more run it in blocks, and at least N + 1 "
                                     "blocks of frames are kept in flight.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
-    closure: Literal["metric", "ratslam"] | None = Field(
+    closure: Literal[CLOSURES] | None = Field(
         None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
                           "default: the services' (metric).")
-    map_optimizer: Literal["gtsam", "ratslam"] | None = Field(
+    map_optimizer: Literal[MAP_OPTIMIZERS] | None = Field(
         None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
     map: Path | None = Field(
         None, description="Start from the map an earlier run left in this results folder (read only); this run is its next "
