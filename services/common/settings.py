@@ -104,7 +104,9 @@ def add_field_flag(parser, model, name: str, *, flag: str | None = None, **extra
     if typing.get_origin(annotation) in (typing.Union, types.UnionType):   # X | None: the X
         annotation = next(arg for arg in typing.get_args(annotation) if arg is not type(None))
     default = field.get_default(call_default_factory=True)
-    kwargs: dict[str, Any] = {"dest": name, "help": f"{(field.description or '').rstrip('.')} (default {default})"}
+    # None: the description says what happens; a switch is off unless given
+    said = "" if default is None or (annotation is bool and default is False) else f" (default {default})"
+    kwargs: dict[str, Any] = {"dest": name, "help": f"{(field.description or '').rstrip('.')}{said}"}
     if annotation is bool:
         kwargs.update(action="store_true", default=None)
     elif typing.get_origin(annotation) is Literal:
