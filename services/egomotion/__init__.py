@@ -72,10 +72,15 @@ def preset_names() -> list[str]:
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """A preset or config TOML file, shape-checked: optional ``estimator`` string and one
-    table per estimator name."""
+    table per estimator name; or a whole gridslam config file, whose [egomotion] table has that
+    shape (and the instances' keys, which an offline run has no use for)."""
     from services.common.config import read_toml
 
-    return check_config_table(read_toml(path, error=EstimatorConfigError), str(path))
+    table = read_toml(path, error=EstimatorConfigError)
+    if isinstance(table.get("egomotion"), dict):
+        table = {key: value for key, value in table["egomotion"].items() if key not in SHARD_SETTINGS}
+        return check_config_table(table, f"{path}: [egomotion]")
+    return check_config_table(table, str(path))
 
 
 def check_config_table(table: dict[str, Any], where: str) -> dict[str, Any]:
