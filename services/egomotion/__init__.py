@@ -2,12 +2,15 @@
 quality) per camera frame. Pure cores (numpy and OpenCV only).
 
     make_estimator(name, camera, params)   # "scanline", "stereo", "mono", "passthrough"
-    load_estimator_config(preset, config_file) -> (default estimator name, {name: params})
+    egomotion_config(preset, config_file)  # the service's settings (EgomotionConfig), as every service reads its own
+    resolve_estimator(...), resolve_sharding(...)   # from them: the estimator and its parameters, the blocks
+    load_estimator_config(preset, config_file) -> (default estimator name, {name: params})   # gridslam odometry
 
 Presets (services/egomotion/presets/<name>.toml) hold an optional top-level ``estimator``
 (the default estimator for that dataset) and one table of parameters per estimator,
-``[scanline]``, ``[stereo]``, ``[mono]``, ``[passthrough]``; a --config file has the same
-shape and overrides the preset key by key. docs/egomotion.md describes every parameter.
+``[scanline]``, ``[stereo]``, ``[mono]``, ``[passthrough]``: the shape of a config file's
+[egomotion] table. `gridslam odometry --config` takes a file of that shape (or a whole config
+file), over the preset key by key. docs/egomotion.md describes every parameter.
 """
 
 from __future__ import annotations
