@@ -201,7 +201,8 @@ def load_config(
         first = error.errors()[0]
         where = ".".join(str(part) for part in first["loc"]) or section
         name = str(first["loc"][0]) if first["loc"] else None
-        got = f", got {first['input']!r}" if "input" in first and not isinstance(first["input"], dict) else ""
+        shown = "input" in first and not isinstance(first["input"], dict) and first.get("type") != "extra_forbidden"
+        got = f", got {first['input']!r}" if shown else ""   # an unknown key's value says nothing
         if name in given:
             raise ConfigError(f"{given[name]}: {first['msg']}{got} ([{section}] {name})") from None
         origin = f" (from {', '.join(sources)})" if sources else ""
