@@ -261,8 +261,8 @@ def summary_rows(result: dict) -> list[tuple[str, object, str]]:
         rows.append(("closures accepted: true / false", f"{closures['accepted_true']} / {closures['accepted_false']}",
                      f"false: frames > {TRUE_CLOSURE_M:g} m apart"))
         rows.append(("closures rejected: true / false", f"{closures['rejected_true']} / {closures['rejected_false']}", ""))
-    stages = result["stages"]   # in pipeline order (metrics.json holds them sorted by name)
-    for name in sorted(stages, key=lambda name: list(STAGE_TOPICS).index(name) if name in STAGE_TOPICS else len(STAGE_TOPICS)):
+    stages = result["stages"]
+    for name in sorted(stages, key=list(STAGE_TOPICS).index):   # pipeline order (metrics.json sorts them by name)
         stage = stages[name]
         rows.append((f"{name}: frames", stage["frames"], "frames"))
         if "ate_se2" in stage:
