@@ -1,4 +1,5 @@
-"""The loop-closure and experience-map stages offline, on an image folder and a motion file:
+"""The offline map build (`gridslam map build`, `map sweep`): the loop-closure and
+experience-map stages on a source or an image folder and a motion file,
 the same cores as the services (view templates, the paper's consistency rule, the experience
 map and its log) driven frame by frame in one process, so a dataset's evidence (docs/mapping.md)
 is reproducible without a Zenoh network: the paper's Fig. 10 (template and experience ids over
