@@ -350,7 +350,7 @@ class ExperienceMap:
                 transform = inverse(transform)
             self._joining.append((frame, transform, link_covariance, moved_part, fixed_part))
         best: list[int] = []
-        for i, (_, transform_i, covariance_i, moved_i, fixed_i) in enumerate(self._joining):
+        for _, transform_i, covariance_i, moved_i, fixed_i in self._joining:
             agreeing = [j for j, (_, transform_j, covariance_j, moved_j, fixed_j) in enumerate(self._joining)
                         if (moved_j, fixed_j) == (moved_i, fixed_i)
                         and _mahalanobis(transform_i, transform_j, covariance_i + covariance_j) <= self.params.join_gate]

@@ -100,10 +100,6 @@ class ConsistencyRule:
                 best, longest = (template, matched), length
         return best
 
-    def consistent_votes(self) -> int:
-        """The length of the run ending at the window's newest vote (`run_to`)."""
-        return len(self.run_to(self.possible[-1]))
-
     def run_to(self, newest: Vote) -> list[Vote]:
         """The longest run of votes that agree with ``newest`` and ends at it, oldest first: frame
         offsets within the tolerance of the newest's (the matched frames advance with the current
