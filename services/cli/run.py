@@ -11,6 +11,7 @@ from services.common.config import load_config
 from services.common.layout import add_map_reuse_arguments
 from services.common.runtime import DEFAULT_ROUTER
 from services.expmap.service import add_map_arguments
+from services.pipeline.fleet import add_fleet_arguments
 from services.loopclosure.service import add_place_recognition_argument
 from services.ros.node import add_graph_arguments, graph_flags
 from services.source.service import add_fov_argument
@@ -66,6 +67,7 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     parser.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
                         help="do not write run.mcap (nor keep the camera images for it)")
     add_bag_arguments(parser)
+    add_fleet_arguments(parser)
 
 
 def step_value(text: str) -> int | str:
@@ -140,6 +142,12 @@ def execute(args, **defaults) -> int:
 
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args))
     progress = Progress()
+    if args.fleet:
+        from services.pipeline.fleet import run_fleet_command
+        try:
+            return run_fleet_command(args, config, progress=progress)
+        finally:
+            progress.close()
     try:
         result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite, serve=True,
                               announce=lambda line: print(line, file=sys.stderr, flush=True))

@@ -115,6 +115,10 @@ class _RunFields(BaseModel):
         None, description="Start from the map an earlier run left in this results folder (read only); this run is its next "
                           "session, and its own results folder holds the whole map.")
     localize: bool = Field(False, description="With map: localise on the saved map only, adding nothing to it.")
+    fleet: bool = Field(False, description="This robot is one of a fleet: its loop closure shares places with the other "
+                                           "robots and confirms inter-robot closures (docs/fleet.md).")
+    origin: int | None = Field(None, ge=0, description="The frame whose pose is the ground truth's origin (default: the "
+                                                       "run's first; a fleet's robots: the first robot's first frame).")
     place_recognition: Literal[PLACE_RECOGNITIONS] | None = Field(
         None, description="How loop closure recognises places: scanline, bow or sequence; default: the loopclosure's "
                           "(its preset's, or bow).")
@@ -165,7 +169,8 @@ class Supervisor:
     log_dir: Path
     children: dict[str, Child] = field(default_factory=dict)
 
-    def start(self, name: str, args: list[str]) -> Child:
+    def start(self, name: str, args: list[str], module: str = "services.cli") -> Child:
+        """Start ``python -m module args`` (the gridslam command line unless told otherwise)."""
         child = self.children.get(name) or Child(name, args, self.log_dir / f"{name}.log")
         child.args = args
         self.children[name] = child
@@ -174,7 +179,7 @@ class Supervisor:
         # a hundredfold; OpenCV's threads cost the stereo estimator 2–4 ms more CPU a frame on
         # NuBot (docs/benchmarks.md), CPU the other stages need.
         env = {**os.environ, **{name: os.environ.get(name, "1") for name in ("OPENBLAS_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")}}
-        child.process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=subprocess.PIPE,
+        child.process = subprocess.Popen([sys.executable, "-m", module, *args], stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         child.seen = False
         reader = threading.Thread(target=self._copy_output, args=(child, child.process.stdout), daemon=True,
@@ -343,7 +348,7 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
     if name == "ros2":
         args += graph_args(config)
     if name == "loopclosure":
-        args += ["--store", str(folder / TEMPLATE_LOG)]
+        args += ["--store", str(folder / TEMPLATE_LOG)] + (["--fleet"] if config.fleet else [])
         args += ["--place-recognition", config.place_recognition] if config.place_recognition else []
     if name == "expmap":
         args += ["--store", str(folder / MAP_LOG), "--out", str(folder)]
@@ -393,6 +398,8 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
 def origin_of(config: RunConfig) -> int:
     """The frame whose pose is the ground truth's origin: the run's first, or on a saved map of
     the same source the first of the run that made the map (so that its frame is the truth's)."""
+    if config.origin is not None:
+        return config.origin
     if config.map is not None:
         try:
             saved = json.loads((config.map / CONFIG).read_text())
