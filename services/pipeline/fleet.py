@@ -207,6 +207,7 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
     wall = time.monotonic() - started
     result = evaluate_fleet(folder, names, online, {r: d for r, _, d in plan})
     result["wall_time_s"] = wall
+    result["fleetmap_restarts"] = supervisor.children["fleetmap"].restarts
     write_json(folder / METRICS, {"fleet": result, "robots": {r: _summary(folder / r) for r in names}})
     return folder, result
 
