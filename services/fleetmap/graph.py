@@ -260,9 +260,11 @@ class FleetMap:
     def final_poses(self) -> dict[str, np.ndarray]:
         """Every experience's best estimate, per robot (a pass over the map)."""
         self._flush()
-        estimate = self._isam.calculateEstimate()
-        return {robot: np.array([_xyh(estimate.atPose2(self._key(robot, i))) for i in range(len(state.poses))]
-                                ).reshape(-1, 3) for robot, state in self.robots.items()}
+        every, row, poses = self.gtsam.utilities.extractPose2(self._isam.calculateEstimate()), 0, {}
+        for robot, state in sorted(self.robots.items(), key=lambda item: item[1].slot):
+            poses[robot] = every[row:row + len(state.poses)].reshape(-1, 3).copy()
+            row += len(state.poses)
+        return poses
 
     def counts(self) -> dict[str, int]:
         counts = dict.fromkeys(FATES, 0)
@@ -478,14 +480,18 @@ class FleetMap:
         return first
 
     def _refresh(self, result: Result) -> None:
-        estimate = self._isam.calculateEstimate()
-        for robot, state in self.robots.items():
-            if not state.poses:
-                continue
-            fresh = np.array([_xyh(estimate.atPose2(self._key(robot, i))) for i in range(len(state.poses))])
-            moved = np.flatnonzero((np.abs(fresh - self.estimates[robot]) > MOVED).any(axis=1))
+        """Every experience's estimate from the solver, in one pass (keys sort by robot, then experience)."""
+        every = self.gtsam.utilities.extractPose2(self._isam.calculateEstimate())
+        row = 0
+        for robot, state in sorted(self.robots.items(), key=lambda item: item[1].slot):
+            count = len(state.poses)
+            fresh = every[row:row + count]
+            row += count
+            change = np.abs(fresh - self.estimates[robot])
+            change[:, 2] = np.abs((change[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+            moved = np.flatnonzero((change > MOVED).any(axis=1))
             result.moved.extend((robot, int(i)) for i in moved)
-            self.estimates[robot] = fresh
+            self.estimates[robot] = fresh.copy()
 
     def _test(self, closure: Closure, result: Result) -> None:
         """The robust test of a closure between joined parts (module docstring)."""
@@ -549,10 +555,6 @@ class FleetMap:
             fleet.closures.append(closure)
         fleet._rebuild()
         return fleet
-
-
-def _xyh(pose) -> tuple[float, float, float]:
-    return pose.x(), pose.y(), pose.theta()
 
 
 def _link_of(closure: ClosureInput) -> tuple[tuple[float, float, float], np.ndarray]:

@@ -72,6 +72,11 @@ class _Robot:
 class FleetMapService(Service):
     name = "fleetmap"
     exclusive = True   # one fleet map per fleet
+    # It listens to the robots and must never slow them: a sample that finds the inbox full is
+    # dropped (counted), and what it carried comes again from the catch-up (a map/update that does
+    # not follow on, a closure index skipped).
+    observer = True
+    inbox_size = 1024
 
     def __init__(self, runtime: RuntimeConfig, config, instance: str | None = None):
         super().__init__(runtime, instance)

@@ -6,7 +6,9 @@ the one Zenoh session of its process."""
 from __future__ import annotations
 
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from services.common.errors import GridslamError
@@ -21,9 +23,11 @@ def main(argv: list[str]) -> int:
     if len(argv) != 2:
         print("usage: python -m services.pipeline.fleet_member CONFIG.json OUT", file=sys.stderr)
         return 2
+    stop = threading.Event()   # the fleet run stops its robots with SIGTERM: the run stops its services
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         config = RunConfig.model_validate_json(Path(argv[0]).read_text())
-        result = run_pipeline(config, Path(argv[1]))
+        result = run_pipeline(config, Path(argv[1]), stop_event=stop)
     except GridslamError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1
