@@ -33,6 +33,7 @@ from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import config_fields, params_of
 from services.expmap.graph import between
+from services.fleetmap.catchup import ClosureIntake, map_increment
 from services.fleetmap.consistency import ConsistencyParams
 from services.fleetmap.graph import ClosureInput, FleetMap, FleetParams, Result
 from services.fleetmap.store import FleetStore, closure_record, map_record
@@ -65,7 +66,6 @@ class _Robot:
     def __init__(self):
         self.poses: dict[int, tuple[float, float, float]] = {}   # its experiences in its own map, as last published
         self.frames: dict[int, tuple[int, tuple[float, float, float]]] = {}   # frame → (experience, offset)
-        self.next_closure = 0
         self.needs_snapshot = False
 
 
@@ -86,19 +86,18 @@ class FleetMapService(Service):
         self.store = FleetStore(config.store, self.params, self.consistency, config.checkpoint_events)
         self.lock = threading.Lock()   # the snapshot is read on a Zenoh thread
         self.feeds: dict[str, _Robot] = {}
+        self.intake = ClosureIntake()   # closures taken once each, waiting until both maps place them
         started = time.perf_counter()
         self.fleet, restored = self.store.rebuild(each=self._remember)
         if self.store.inputs:
             log.info("fleetmap resumed from %s in %.2f s: %d inputs (%s), robots %s", config.store,
                      time.perf_counter() - started, len(self.store.inputs),
                      f"checkpoint after {restored}" if restored else "all replayed", ", ".join(self.fleet.robots))
-        self.waiting: list[tuple[str, object]] = []   # closures not placed on both maps yet
         self.changed: set[tuple[str, int]] = set()
         self.decided: dict[tuple[str, int], object] = {}
         self.last_update = 0.0
         self.next_sync = 0.0
         self._last_header = None
-        self.duplicates = 0
 
     def _feed(self, robot: str) -> _Robot:
         return self.feeds.setdefault(robot, _Robot())
@@ -110,9 +109,7 @@ class FleetMapService(Service):
             for ident, x, y, heading, _ in record["experiences"]:
                 feed.poses[int(ident)] = (x, y, heading)
         else:
-            closure = record["closure"]
-            feed = self._feed(closure["robot"])
-            feed.next_closure = max(feed.next_closure, closure["index"] + 1)
+            self.intake.replayed(record["closure"]["robot"], record["closure"]["index"])
 
     # --- wiring -----------------------------------------------------------------------------------
     def setup(self) -> None:
@@ -137,22 +134,23 @@ class FleetMapService(Service):
         feed = self._feed(robot)
         for e in message.experiences:
             feed.poses[e.id] = (e.x, e.y, e.heading)
-        state = self.fleet.robots.get(robot)
-        known, links = (len(state.poses), state.links) if state else (0, 0)
-        first_link = message.link_count - len(message.links)
-        fresh = sorted((e for e in message.experiences if e.id >= known), key=lambda e: e.id)
-        if first_link > links or (fresh and fresh[0].id != known) or \
-                [e.id for e in fresh] != list(range(known, known + len(fresh))) or \
-                (state is None and not fresh):
+        increment = map_increment(*self._known(robot), message.experiences, message.link_count - len(message.links),
+                                  message.links)
+        if increment is None:
             feed.needs_snapshot = True   # a part of its map went by while the fleet map was not listening
             self._sync_robot(robot)
             return
-        new_links = [link for i, link in enumerate(message.links) if first_link + i >= links]
-        self._grow(robot, [(e.id, e.x, e.y, e.heading, e.frame) for e in fresh], new_links, message.header)
+        self._grow(robot, *increment, message.header)
+
+    def _known(self, robot: str) -> tuple[int, int]:
+        """The experiences and links the fleet map has of a robot's map."""
+        state = self.fleet.robots.get(robot)
+        return (len(state.poses), state.links) if state else (0, 0)
 
     def _grow(self, robot: str, experiences: list, links: list, header) -> None:
         if not experiences and not links:
             return
+        experiences = [(e.id, e.x, e.y, e.heading, e.frame) for e in experiences]
         if any(link.covariance is None for link in links):
             raise ConfigError(f"fleetmap: robot {robot}'s map/update has links without a covariance (its expmap must be "
                               "the pose graph, optimizer gtsam)")
@@ -184,7 +182,7 @@ class FleetMapService(Service):
                 self.counters.published += 1
         elif state is None:
             self._feed(robot).needs_snapshot = True
-        if any(name == robot for name, _ in self.waiting):
+        if any(name == robot for name, _ in self.intake.waiting):
             self._resolve()
         self._publish_update()
         self._maybe_sync()
@@ -192,30 +190,18 @@ class FleetMapService(Service):
     # --- inter-robot closures --------------------------------------------------------------------
     def on_closures(self, message: FleetClosures) -> None:
         robot = message.header.robot
-        feed = self._feed(robot)
-        records = sorted(message.closures, key=lambda c: c.index)
-        if records and records[0].index > feed.next_closure:
+        if self.intake.missed(robot, message.closures):
             self._fetch_closures(robot)   # some were missed: ask for them, in order
-        for record in records:
-            self._take_closure(robot, record)
+        self.intake.take(robot, message.closures)
         self._resolve()
 
-    def _take_closure(self, robot: str, record) -> None:
-        feed = self._feed(robot)
-        if record.index < feed.next_closure or any(n == robot and r.index == record.index for n, r in self.waiting):
-            self.duplicates += 1
-            return
-        feed.next_closure = record.index + 1
-        self.waiting.append((robot, record))
+    def _placed(self, robot: str, record):
+        placed = self._placement(robot, record.frame), self._place_of(record.matched_robot, record.matched_frame)
+        return None if None in placed else placed
 
     def _resolve(self) -> None:
         """Place the waiting closures whose frames both maps now have (in the order they came)."""
-        still = []
-        for robot, record in self.waiting:
-            placed = self._placement(robot, record.frame), self._place_of(record.matched_robot, record.matched_frame)
-            if None in placed:
-                still.append((robot, record))
-                continue
+        for robot, record, placed in self.intake.place(self._placed):
             (experience, offset), (matched_experience, matched_offset) = placed
             measured = record.relative_pose is not None and record.covariance is not None
             closure = ClosureInput(robot, record.index, record.frame, experience, offset, record.matched_robot,
@@ -236,7 +222,6 @@ class FleetMapService(Service):
             for pair in result.split:
                 log.warning("fleetmap: robots %s and %s split apart: later closures contradict their join", *pair)
             self._after(result, None)
-        self.waiting = still
         if self.store.checkpoint_due():
             with self.lock:
                 self.store.checkpoint(self.fleet)
@@ -315,31 +300,25 @@ class FleetMapService(Service):
         feed.needs_snapshot = False
         for e in snapshot.experiences:
             feed.poses[e.id] = (e.x, e.y, e.heading)
-        state = self.fleet.robots.get(robot)
-        known, links = (len(state.poses), state.links) if state else (0, 0)
+        known, links = self._known(robot)
         log.info("fleetmap: robot %s's map from its snapshot: experiences %d → %d, links %d → %d", robot, known,
                  len(snapshot.experiences), links, len(snapshot.links))
-        self._grow(robot, [(e.id, e.x, e.y, e.heading, e.frame) for e in snapshot.experiences[known:]],
-                   snapshot.links[links:], snapshot.header)
+        increment = map_increment(known, links, snapshot.experiences, 0, snapshot.links)
+        if increment is not None:
+            self._grow(robot, *increment, snapshot.header)
 
     def _fetch_closures(self, robot: str) -> None:
-        feed = self._feed(robot)
         while True:
             got = None
-            for reply in self.session.get(f"{topics.key(robot, 'fleet/closures')}?from={feed.next_closure}",
+            start = self.intake.next.get(robot, 0)
+            for reply in self.session.get(f"{topics.key(robot, 'fleet/closures')}?from={start}",
                                           timeout=QUERY_TIMEOUT_S):
                 if reply.ok is not None:
                     try:
                         got = codec.decode(reply.ok.payload.to_bytes(), FleetClosures, str(reply.ok.encoding))
                     except codec.CodecError as error:
                         log.warning("fleetmap: fleet/closures of robot %s: %s", robot, error)
-            if got is None or not got.closures:
-                return
-            before = feed.next_closure
-            for record in sorted(got.closures, key=lambda c: c.index):
-                if record.index == feed.next_closure:
-                    self._take_closure(robot, record)
-            if feed.next_closure == before:
+            if got is None or not self.intake.take(robot, got.closures):
                 return
 
     # --- outputs --------------------------------------------------------------------------------
@@ -387,7 +366,7 @@ class FleetMapService(Service):
                 "robots_joined": sum(self.fleet.joined(r) for r in self.fleet.robots),
                 "experiences": sum(len(s.poses) for s in self.fleet.robots.values()),
                 **{f"closures_{fate}": count for fate, count in counts.items()},
-                "closures_waiting": len(self.waiting), "closures_duplicate": self.duplicates}
+                "closures_waiting": len(self.intake.waiting), "closures_duplicate": self.intake.duplicates}
 
 
 def link_message(closure) -> FleetLink:

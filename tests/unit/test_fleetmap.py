@@ -5,13 +5,16 @@ away, and a journal that rebuilds the same map."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from services.expmap.graph import between
+from services.fleetmap.catchup import ClosureIntake, map_increment
 from services.fleetmap.consistency import Candidate, ConsistencyParams, consistency_graph, maximum_clique
 from services.fleetmap.graph import ClosureInput, FleetMap, FleetParams
+from services.common.journal import read_records
 from services.fleetmap.store import FleetStore, apply, closure_record, map_record, read_fleet_log
 
 COVARIANCE = (0.01 ** 2, 0, 0, 0, 0.01 ** 2, 0, 0, 0, 1e-4)
@@ -164,3 +167,133 @@ def test_the_journal_and_its_checkpoint_rebuild_the_same_map(tmp_path):
             assert np.array_equal(fleet.estimates[name], live.estimates[name])
         assert [c.fate for c in fleet.closures] == [c.fate for c in live.closures]
     assert live.closures[-1].fate == "rejected"
+    # restart-exact: the restored maps go on as the live one does
+    later = [closure_record(closure(k, k + 2, truth_b, 42 + k, truth_a)) for k in range(9, 13)]
+    later.append(closure_record(closure(13, 40, truth_b, 20, truth_a, claimed=(0.0, 0.0, 0.0))))
+    fates = [[[c.fate for c in apply(fleet, record).decided] for record in later] for fleet in (live, restored, replayed)]
+    assert fates == [[["accepted"]] * 4 + [["rejected"]]] * 3
+    for fleet in (restored, replayed):
+        for name in ("a", "b"):
+            assert np.array_equal(fleet.estimates[name], live.estimates[name])
+
+
+def test_a_join_needs_mutually_consistent_closures(two):
+    fleet, truth_a, truth_b = two
+    # six closures that each say b's map is somewhere else: every one 1 m to the side of the last
+    for k in range(6):
+        true = between(truth_a[40 + k], truth_b[k])
+        fleet.add_closure(closure(k, k, truth_b, 40 + k, truth_a, claimed=(true[0], true[1] + 1.0 * k, true[2])))
+    assert not fleet.joined("b") and {c.fate for c in fleet.closures} == {"pending"}
+    assert error_of_b(fleet, truth_a, truth_b) > 5   # still in its own frame
+
+
+def test_a_single_look_alike_among_true_closures_joins_nothing_and_is_refused(two):
+    fleet, truth_a, truth_b = two
+    # b's experience 30 looks like a's 10 (the pose says: right there), then two true closures
+    fleet.add_closure(closure(0, 30, truth_b, 10, truth_a, claimed=(0.0, 0.0, 0.0)))
+    for k in range(1, 3):
+        fleet.add_closure(closure(k, k, truth_b, 40 + k, truth_a))
+    assert not fleet.joined("b")   # three closures, but only two agree: join_closures = 3
+    fleet.add_closure(closure(3, 3, truth_b, 43, truth_a))
+    assert fleet.joined("b") and error_of_b(fleet, truth_a, truth_b) < 1e-6
+    assert [c.fate for c in fleet.closures] == ["rejected", "accepted", "accepted", "accepted"]
+
+
+
+def updates(experiences, links, cuts, relisted=2):
+    """A robot's map/update stream: one message per stretch between ``cuts``, each with its new
+    experiences (and the ``relisted`` before them again, as a map a closure moved relists them),
+    its new links and the map's link count after it."""
+    def shown(lo, hi):
+        return [SimpleNamespace(id=e[0], x=e[1], y=e[2], heading=e[3], frame=e[4]) for e in experiences[lo:hi]]
+    return [SimpleNamespace(experiences=shown(max(0, lo - relisted), hi), links=links[max(0, lo - 1):hi - 1],
+                            link_count=hi - 1) for lo, hi in zip(cuts, cuts[1:])]
+
+
+class Adapter:
+    """What the fleetmap service does with what it hears of robot b (services/fleetmap/service.py),
+    without Zenoh: map messages through `map_increment`, closures through a `ClosureIntake`, every
+    input journaled before it is applied (a restart: `FleetStore.rebuild`, the intake told of the
+    replayed closures)."""
+
+    def __init__(self, path, records):
+        self.store = FleetStore(path, FleetParams(frame_robot="a"), ConsistencyParams(), checkpoint_events=4)
+        self.intake = ClosureIntake()
+        self.records = records
+        self.fleet, _ = self.store.rebuild(
+            each=lambda record, _: "closure" in record and self.intake.replayed("b", record["closure"]["index"]))
+
+    def grow(self, robot, experiences, links):
+        self.apply(map_record(robot, [(e.id, e.x, e.y, e.heading, e.frame) for e in experiences], links))
+
+    def apply(self, record):
+        self.store.append(record)
+        apply(self.fleet, record)
+        if self.store.checkpoint_due():
+            self.store.checkpoint(self.fleet)
+
+    def map_message(self, message, snapshot=False):
+        """A map/update (a snapshot: all links, from the first); False when it does not follow on."""
+        state = self.fleet.robots.get("b")
+        increment = map_increment(len(state.poses) if state else 0, state.links if state else 0, message.experiences,
+                                  0 if snapshot else message.link_count - len(message.links), message.links)
+        if increment is not None:
+            self.grow("b", *increment)
+            self.resolve()
+        return increment is not None
+
+    def closures(self, indices):
+        taken = self.intake.take("b", [self.records[k] for k in indices])
+        self.resolve()
+        return [record.index for record in taken]
+
+    def resolve(self):
+        for _, _, placed in self.intake.place(self.placement):
+            self.apply(closure_record(placed))
+
+    def placement(self, _robot, record):   # placed once b's map has the revisiting experience
+        return record.closure if record.closure.experience < len(self.fleet.robots["b"].poses) else None
+
+
+def test_catching_up_live_late_and_after_a_restart_fuses_nothing_twice(two, tmp_path):
+    reference, truth_a, truth_b = two
+    closures = [closure(k, 2 * k, truth_b, 40 + 2 * k, truth_a) for k in range(10)]
+    for c in closures:
+        reference.add_closure(c)
+    assert reference.joined("b")
+    _, ea, la = robot(0)
+    _, eb, lb = robot(40)
+    records = [SimpleNamespace(index=c.index, closure=c) for c in closures]
+    stream = updates(eb, lb, [0, 2, 6, 20, 30, 45, 60])
+    snapshot = SimpleNamespace(experiences=updates(eb, lb, [0, 30], relisted=0)[0].experiences, links=lb[:29])
+    fleet = Adapter(tmp_path / "fleet.log", records)
+    fleet.grow("a", updates(ea, la, [0, 60])[0].experiences, la)
+    assert fleet.map_message(stream[0]) and fleet.closures([0, 1]) == [0, 1]
+    assert [r.index for _, r in fleet.intake.waiting] == [1]   # it revisits experience 2, not on the map yet
+    assert fleet.map_message(stream[1]) and not fleet.intake.waiting
+    # stream[2] (experiences 6..19) and closures 2, 3 go by unheard
+    assert not fleet.map_message(stream[3])                       # does not follow on: the snapshot
+    assert fleet.map_message(snapshot, snapshot=True)
+    assert fleet.map_message(stream[3]) and fleet.map_message(stream[2])   # heard late: nothing new in them
+    assert fleet.intake.missed("b", records[4:5]) and fleet.closures([4]) == []   # a gap: asked from closure 2
+    assert fleet.closures(range(2, 7)) == [2, 3, 4, 5, 6] and fleet.closures([4, 5]) == []
+    assert fleet.intake.duplicates == 2
+    fleet.store.close()
+    # restarted: its journal (and checkpoint) replayed, then everything heard again from the start
+    fleet = Adapter(tmp_path / "fleet.log", records)
+    assert fleet.store.checkpoints and fleet.intake.next == {"b": 7}
+    for message in stream:
+        assert fleet.map_message(message)
+    assert fleet.closures(range(10)) == [7, 8, 9]
+    fleet.store.close()
+    journal = [r for r in read_records(tmp_path / "fleet.log")[0][1:] if "checkpoint" not in r]
+    assert [e[0] for r in journal if r.get("map") == "b" for e in r["experiences"]] == list(range(60))
+    assert [r["closure"]["index"] for r in journal if "closure" in r] == list(range(10))
+    rebuilt = read_fleet_log(tmp_path / "fleet.log")
+    for result in (fleet.fleet, rebuilt):
+        assert result.robots["b"].links == 59
+        assert [(c.ident, c.fate) for c in result.closures] == [(c.ident, c.fate) for c in reference.closures]
+        for name in ("a", "b"):
+            assert np.allclose(result.estimates[name], reference.estimates[name], atol=1e-9)
+    for name in ("a", "b"):
+        assert np.array_equal(rebuilt.estimates[name], fleet.fleet.estimates[name])
