@@ -487,10 +487,7 @@ class FleetMap:
             count = len(state.poses)
             fresh = every[row:row + count]
             row += count
-            change = np.abs(fresh - self.estimates[robot])
-            change[:, 2] = np.abs((change[:, 2] + np.pi) % (2 * np.pi) - np.pi)
-            moved = np.flatnonzero((change > MOVED).any(axis=1))
-            result.moved.extend((robot, int(i)) for i in moved)
+            result.moved.extend((robot, int(i)) for i in _moved(fresh, self.estimates[robot]))
             self.estimates[robot] = fresh.copy()
 
     def _test(self, closure: Closure, result: Result) -> None:
@@ -500,6 +497,7 @@ class FleetMap:
         _, _, source, target, transform, covariance = entry
         information = np.linalg.inv(covariance)
         measured = gtsam.Pose2(*transform)
+        before = {robot: estimates.copy() for robot, estimates in self.estimates.items()}
         innovation = gtsam.Pose2.Logmap(measured.between(
             self._isam.calculateEstimatePose2(source).between(self._isam.calculateEstimatePose2(target))))
         self._graph.add(self._factor(entry, robust=False))
@@ -509,11 +507,15 @@ class FleetMap:
         statistic = float(innovation @ information @ residual)
         accepted = float(residual @ information @ residual) - LINEAR_TOLERANCE <= statistic <= self.params.closure_gate ** 2
         closure.statistic = float(math.sqrt(max(statistic, 0.0)))
-        if accepted:
+        if accepted:   # kept, as a Gaussian factor (not the test's)
             self._graph.add(self._factor(entry))
-            self._solve(result, remove=[index])
-        else:
-            self._solve(result, remove=[index])
+        self._solve(result, remove=[index])
+        if not accepted and any(_moved(self.estimates[robot], estimates).size for robot, estimates in before.items()):
+            # A far-off closure bends the map so much that taking it out again leaves it in another
+            # minimum (the robots' own closures, under their kernel, then hold the bent shape): the
+            # map as it was before the test, solved afresh.
+            self.estimates = before
+            self._rebuild(result)
         closure.fate = "accepted" if accepted else "rejected"
         result.decided.append(closure)
 
@@ -555,6 +557,13 @@ class FleetMap:
             fleet.closures.append(closure)
         fleet._rebuild()
         return fleet
+
+
+def _moved(estimates: np.ndarray, before: np.ndarray) -> np.ndarray:
+    """The rows of ``estimates`` more than MOVED from ``before``'s (headings wrapped)."""
+    change = np.abs(estimates - before)
+    change[:, 2] = np.abs((change[:, 2] + np.pi) % (2 * np.pi) - np.pi)
+    return np.flatnonzero((change > MOVED).any(axis=1))
 
 
 def _link_of(closure: ClosureInput) -> tuple[tuple[float, float, float], np.ndarray]:

@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from schemas import (FleetClosures, FleetExperience, FleetLink, FleetPose, FleetRobot, FleetSnapshot, FleetUpdate, MapFrames,
                      MapPose, MapSnapshot, MapUpdate)
-from services.common import codec, topics
+from services.common import codec, health, topics
 from services.common.config import load_config
 from services.common.convert import heading_of, planar_pose
 from services.common.errors import ConfigError
@@ -272,7 +272,7 @@ class FleetMapService(Service):
             return
         self.next_sync = now + self.config.sync_period
         for robot in sorted(self._live("expmap")):
-            if robot not in self.fleet.robots or self._feed(robot).needs_snapshot:
+            if robot not in self.fleet.robots or self._feed(robot).needs_snapshot or self._behind(robot):
                 self._sync_robot(robot)
         for robot in sorted(self._live("loopclosure")):
             self._fetch_closures(robot)
@@ -284,6 +284,13 @@ class FleetMapService(Service):
             if reply.ok is not None:
                 robots.add(topics.parse_health_key(str(reply.ok.key_expr))[0])
         return robots - {topics.FLEET}
+
+    def _behind(self, robot: str) -> bool:
+        """Whether the robot's expmap says its map has more than the fleet map holds (its last
+        map/update lost, with no later one to show the gap)."""
+        known, links = self._known(robot)
+        return any(s.service == "expmap" and (s.extra.get("experiences", 0) > known or s.extra.get("links", 0) > links)
+                   for s in health.statuses(self.session, robot, timeout=1.0))
 
     def _sync_robot(self, robot: str) -> None:
         """Take what the fleet map lacks of a robot's map from its map/snapshot."""
@@ -366,6 +373,7 @@ class FleetMapService(Service):
                 "robots_joined": sum(self.fleet.joined(r) for r in self.fleet.robots),
                 "experiences": sum(len(s.poses) for s in self.fleet.robots.values()),
                 **{f"closures_{fate}": count for fate, count in counts.items()},
+                **{f"experiences_{robot}": len(state.poses) for robot, state in self.fleet.robots.items()},
                 "closures_waiting": len(self.intake.waiting), "closures_duplicate": self.intake.duplicates}
 
 

@@ -25,6 +25,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
+from services.common import health, topics
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
 from services.common.errors import ConfigError, GridslamError
 from services.common.journal import SESSION, read_records
@@ -60,6 +61,7 @@ SHARDED_SPARE_BLOCKS = 1
 # reason a restart does not cure (a full disk, a bad file): the run stops and quotes it.
 RESTARTS_WITHOUT_PROGRESS = 3
 TAIL_LINES = 20             # last lines of each child's output kept in memory
+FLEET_WAIT_S = 15.0         # a fleet member at its end: how long it waits for the fleet map to hold its whole map
 LIVENESS_CHECK_S = 2.0      # while no frame completes, how often the stages' health tokens are checked
 
 
@@ -553,6 +555,8 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
                 (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
             supervisor.start("source", source_args(config, config.start, ack_topic))
             completed = _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
+            if completed and config.fleet:
+                _wait_for_fleet_map(recorder.session, config.robot, stop_event)
             statuses = recorder.statuses()
             recording = recorder.recording
         wall_time = time.monotonic() - started
@@ -655,6 +659,22 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
         if time.monotonic() > deadline:
             raise RunError(f"services {sorted(missing)} did not come up within {STARTUP_TIMEOUT_S:.0f} s")
         time.sleep(0.1)
+
+
+def _wait_for_fleet_map(session, robot: str, stop_event: threading.Event) -> None:
+    """A fleet member at its last frame: until a live fleet map holds every experience of the
+    robot's map (it takes a part it missed from the map's snapshot, which needs the robot's expmap
+    up), at most FLEET_WAIT_S; at once when no fleet map answers (the robot never waits for one
+    that is down)."""
+    deadline = time.monotonic() + FLEET_WAIT_S
+    while not stop_event.is_set() and time.monotonic() < deadline:
+        own = [s.extra.get("experiences") for s in health.statuses(session, robot, timeout=1.0) if s.service == "expmap"]
+        fleet = [s.extra.get(f"experiences_{robot}", 0) for s in health.statuses(session, topics.FLEET, timeout=1.0)
+                 if s.service == "fleetmap"]
+        if not own or not fleet or max(fleet) >= own[0]:
+            return
+        time.sleep(0.5)
+    log.warning("the fleet map does not hold all of robot %s's map after %.0f s", robot, FLEET_WAIT_S)
 
 
 def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> bool:

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from services.expmap.graph import between
+from services.expmap.graph import between, compose
 from services.fleetmap.catchup import ClosureIntake, map_increment
 from services.fleetmap.consistency import Candidate, ConsistencyParams, consistency_graph, maximum_clique
 from services.fleetmap.graph import ClosureInput, FleetMap, FleetParams
@@ -94,6 +94,36 @@ def test_look_alikes_first_join_wrongly_and_the_true_closures_split_them_and_joi
     assert fleet.joined("b") and error_of_b(fleet, truth_a, truth_b) < 1e-6
     fates = [c.fate for c in fleet.closures]
     assert fates[:6] == ["rejected"] * 6 and set(fates[6:]) == {"accepted"}
+
+
+
+def test_a_far_off_closure_refused_after_the_join_leaves_the_map_as_it_was():
+    """Robot a drives 1⅓ laps with a biased odometry and closes its own loop (closures under the
+    kernel); a closure that says b is turned round is refused, and taking it out again must not
+    leave the map in the bent shape the test solved it into."""
+    rng = np.random.default_rng(1)
+    truth_a = [LOOP[i % len(LOOP)] for i in range(160)]
+    mine = [(0.0, 0.0, 0.0)]
+    links_a = []
+    for i in range(1, 160):
+        step = between(truth_a[i - 1], truth_a[i])
+        step = (step[0] * 1.01 + rng.normal(0, 0.005), step[1] + rng.normal(0, 0.005), step[2] + 0.002)
+        links_a.append((i - 1, i, *step, False, True, LINK_COVARIANCE))
+        mine.append(compose(mine[-1], step))
+    links_a += [(i - 120, i, *between(truth_a[i - 120], truth_a[i]), True, True, list(np.diag([1e-4, 1e-4, 1e-5]).ravel()))
+                for i in range(120, 160)]
+    truth_b, eb, lb = robot(40)
+    fleet = FleetMap(FleetParams(frame_robot="a"))
+    fleet.add_map("a", [(i, *mine[i], i) for i in range(160)], links_a)
+    fleet.add_map("b", eb, lb)
+    for k in range(5):
+        fleet.add_closure(closure(k, k, truth_b, 40 + k, truth_a))
+    assert fleet.joined("b")
+    before = {name: estimates.copy() for name, estimates in fleet.estimates.items()}
+    result = fleet.add_closure(closure(5, 30, truth_b, 130, truth_a, claimed=(0.0, 0.0, 3.0)))
+    assert [c.fate for c in result.decided] == ["rejected"] and result.decided[0].statistic > 100
+    for name in ("a", "b"):   # (without the fresh solve from the map as it was: 21 mm)
+        assert np.abs(fleet.estimates[name][:, :2] - before[name][:, :2]).max() < 0.002
 
 
 def test_a_span_longer_than_the_look_alikes_keeps_them_from_joining(two):
