@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from schemas import FleetPose
+from schemas import FleetPose, MapPose
 from services.common import codec, health, topics
 from services.common.config import preset_applies
 from services.common.convert import heading_of
@@ -99,7 +99,7 @@ class FleetRecorder:
         self.runtime = runtime
         self.lock = threading.Lock()
         self.poses: dict[str, dict[int, tuple[float, float, float, float, bool]]] = {}   # robot → seq → x, y, h, stamp, joined
-        self.done: dict[str, int] = {}
+        self.done: dict[str, set[int]] = {}   # robot → the frames its map has posed
         self.session = None
         self._subscribers = []
 
@@ -127,12 +127,16 @@ class FleetRecorder:
 
     def _on_map_pose(self, sample: zenoh.Sample) -> None:
         robot = str(sample.key_expr).split("/")[2]
-        with self.lock:
-            self.done[robot] = self.done.get(robot, 0) + 1
+        try:
+            seq = codec.decode(sample.payload.to_bytes(), MapPose, str(sample.encoding)).header.seq
+        except codec.CodecError:
+            return
+        with self.lock:   # a frame the source sent again (no acknowledgement in time) counts once
+            self.done.setdefault(robot, set()).add(seq)
 
     def frames_done(self, robot: str) -> int:
         with self.lock:
-            return self.done.get(robot, 0)
+            return len(self.done.get(robot, ()))
 
     def live(self) -> set[tuple[str, str, str]]:
         return set(health.live_services(self.session, timeout=1.0))
