@@ -10,7 +10,6 @@ with a warning exactly as a restart would skip it.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path

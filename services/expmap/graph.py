@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common.errors import ConfigError
+from services.common.geometry import adjoint, between, compose, inverse
 
 OPTIMIZERS = ("gtsam", "ratslam")
 CLOSURES = ("metric", "ratslam")
@@ -101,38 +102,6 @@ class MapParams:
         for name, ok in rules:
             if not ok:
                 raise ConfigError(f"experience map: invalid {name} = {getattr(self, name)!r}")
-
-
-# --- planar poses (x, y, heading) ---------------------------------------------------------------
-def wrap(angle):
-    return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
-
-
-def compose(pose: tuple[float, float, float], offset: tuple[float, float, float]) -> tuple[float, float, float]:
-    """pose ∘ offset for planar poses (x, y, heading)."""
-    x, y, th = pose
-    dx, dy, dth = offset
-    c, s = math.cos(th), math.sin(th)
-    return x + c * dx - s * dy, y + s * dx + c * dy, float(wrap(th + dth))
-
-
-def between(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
-    """The offset of b in a's frame: a ∘ between(a, b) = b."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return c * dx + s * dy, -s * dx + c * dy, float(wrap(b[2] - a[2]))
-
-
-def inverse(pose: tuple[float, float, float]) -> tuple[float, float, float]:
-    return between(pose, (0.0, 0.0, 0.0))
-
-
-def adjoint(pose: tuple[float, float, float]) -> np.ndarray:
-    """SE(2) adjoint: carries a right-hand tangent perturbation across `pose`
-    (pose ∘ Exp(ε) = Exp(Ad ε) ∘ pose); tangent order (x, y, heading)."""
-    x, y, th = pose
-    c, s = math.cos(th), math.sin(th)
-    return np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
 
 
 # --- links and closures ---------------------------------------------------------------------------

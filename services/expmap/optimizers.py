@@ -36,7 +36,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.expmap.graph import MOVED, ExperienceMap, Link, wrap
+from services.common.geometry import wrap
+from services.expmap.graph import MOVED, ExperienceMap, Link
 
 # Published poses refreshed per solve besides those the solver re-eliminated: every solved
 # experience is refreshed at least once every len(map) / REFRESH_PER_SOLVE solves.

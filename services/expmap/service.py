@@ -36,6 +36,7 @@ from services.common.layout import add_map_reuse_arguments, map_files, session_b
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.expmap.graph import MOVED, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
+from services.expmap.joiner import FrameJoiner
 from services.expmap.route import shortest_route
 from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, header
 
@@ -190,10 +191,7 @@ class ExpMapService(Service):
                      time.perf_counter() - started, len(self.store.steps),
                      f"checkpoint after {restored}, {len(self.store.steps) - restored} replayed" if restored else "all replayed",
                      len(self.map), len(self.map.links))
-        self.poses: dict[int, GridPose] = {}
-        self.views: dict[int, ViewTemplate] = {}
-        self.closures: dict[int, list[LoopClosure]] = {}   # by the seq of the frame that confirmed them
-        self.skipped = 0   # frames with a pose but no view template
+        self.joiner = FrameJoiner()   # the frames' three inputs, joined by seq (joiner.py)
         self._last_header = None   # of the last map/update or map/pose published
 
     def setup(self) -> None:
@@ -231,54 +229,34 @@ class ExpMapService(Service):
         if max(abs(position.x), abs(position.y)) > MAX_COORDINATE_M or abs(message.heading) > MAX_HEADING_RAD:
             raise MapInputError(f"grid pose ({position.x:.3g}, {position.y:.3g}) m, heading {message.heading:.3g} rad "
                                 f"is beyond {MAX_COORDINATE_M:g} m or {MAX_HEADING_RAD:g} rad")
-        self.poses[message.header.seq] = message
+        self.joiner.pose(message.header.seq, message)
         self._advance()
 
     def on_view(self, message: ViewTemplate) -> None:
-        self.views[message.header.seq] = message
+        self.joiner.view(message.header.seq, message, max(message.loop_closures, int(message.loop_closure)))
         self._advance()
 
     def on_closure(self, message: LoopClosure) -> None:
-        closures = self.closures.setdefault(message.header.seq, [])
-        if (self.map.last_frame is not None and self.base + message.header.seq <= self.map.last_frame) or \
-                any(c.frame == message.frame for c in closures):
+        if not self.joiner.closure(message.header.seq, message.frame, message, self._mapped()):
             self.counters.stale += 1   # a frame re-sent after a restart: the map has it, or has it in hand
             return
-        closures.append(message)
         self._advance()
+
+    def _mapped(self) -> int | None:
+        """The last seq of this session the map holds (None: none)."""
+        return None if self.map.last_frame is None else self.map.last_frame - self.base
 
     def _advance(self) -> None:
         """Apply every frame whose inputs are all in, in frame order (the map is deterministic in
         its input order, whatever order the topics' messages arrive in)."""
-        while self.poses:
-            seq = min(self.poses)
-            view = self.views.get(seq)
-            if view is None and any(s > seq for s in self.views):
-                # Views come in frame order, so this frame's never will (loopclosure rejected it):
-                # skip it rather than hold every later frame behind it.
-                self.poses.pop(seq)
-                self.skipped += 1
-                log.warning("expmap: frame %d skipped: no view template for it, later ones arrived", seq)
-                continue
-            if view is None:
-                return
-            in_map = self.map.last_frame is not None and self.base + seq <= self.map.last_frame   # re-sent after a restart
-            if not in_map and len(self.closures.get(seq, ())) < max(view.loop_closures, int(view.loop_closure)):
-                return
-            pose = self.poses.pop(seq)
-            self.views.pop(seq)
-            closures = sorted(self.closures.pop(seq, ()), key=lambda c: c.frame)
-            frame = self.base + seq
-            own = next((closure_input(c, frame) for c in closures if c.frame == frame), None)
-            earlier = tuple(closure_input(c, frame) for c in closures if c.frame != frame)
-            for stale in [s for s in self.views if s < seq]:
-                del self.views[stale]
-            for stale in [s for s in self.closures if s < seq]:
-                del self.closures[stale]
-            if in_map:
+        while (joined := self.joiner.next(self._mapped())) is not None:
+            pose, view, frame = joined.pose, joined.view, self.base + joined.seq
+            if joined.in_map:
                 if frame in self.recent:   # already in the map (a re-sent frame after a restart): answer again
                     self._publish_pose(pose, self.recent[frame])
                 continue
+            own = next((closure_input(c, frame) for c in joined.closures if c.frame == frame), None)
+            earlier = tuple(closure_input(c, frame) for c in joined.closures if c.frame != frame)
             step = Step(frame, pose.header.stamp.to_seconds(), (pose.pose.position.x, pose.pose.position.y, pose.heading),
                         view.template_id, own, tuple(pose.increment_covariance) if pose.increment_covariance is not None
                         else None, earlier)
@@ -383,7 +361,7 @@ class ExpMapService(Service):
     def extra_counters(self) -> dict[str, float]:
         closures = self.map.closures
         return {**super().extra_counters(), "experiences": len(self.map), "links": len(self.map.links),
-                "frames_in_map": len(self.map.frames), "frames_skipped": self.skipped,
+                "frames_in_map": len(self.map.frames), "frames_skipped": self.joiner.skipped,
                 "closures_accepted": closures["accepted"], "closures_rejected": closures["rejected"],
                 "closures_unmeasured": closures["unmeasured"]}
 

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.geometry import adjoint, between, compose, inverse
 from services.common.settings import check, setting
-from services.expmap.graph import adjoint, between, compose, inverse
 
 
 @dataclass(frozen=True)

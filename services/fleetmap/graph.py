@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.common.geometry import adjoint, compose, inverse
 from services.common.settings import check, setting
-from services.expmap.graph import adjoint, between, compose, inverse
 from services.fleetmap.consistency import Candidate, ConsistencyParams, consistency_graph, maximum_clique
 
 PRIOR_SIGMA = 1e-6          # a part's own frame: its first experience where its robot's map put it

@@ -29,13 +29,13 @@ from services.common import codec, health, topics
 from services.common.config import load_config
 from services.common.convert import heading_of, planar_pose
 from services.common.errors import ConfigError
+from services.common.geometry import between
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import config_fields, params_of
-from services.expmap.graph import between
 from services.fleetmap.catchup import ClosureIntake, map_increment
 from services.fleetmap.consistency import ConsistencyParams
-from services.fleetmap.graph import ClosureInput, FleetMap, FleetParams, Result
+from services.fleetmap.graph import ClosureInput, FleetParams, Result
 from services.fleetmap.store import FleetStore, closure_record, map_record
 
 log = logging.getLogger(__name__)

@@ -29,15 +29,15 @@ from services.common import codec, health, topics
 from services.common.config import preset_applies
 from services.common.convert import heading_of
 from services.common.errors import ConfigError
+from services.common.geometry import compose
 from services.common.layout import CONFIG, LOGS, MAP_LOG, METRICS
 from services.common.runtime import RuntimeConfig, open_session
 from services.evaluation import metrics as trajectory_metrics
 from services.evaluation.results import results_dir, write_config, write_json
+from services.evaluation.revisits import TRUE_CLOSURE_M, same_place
 from services.evaluation.trajectory import Trajectory, read_tum, write_tum
 from services.expmap.export import read_log
-from services.expmap.graph import compose
 from services.fleetmap.store import read_fleet_log
-from services.pipeline.report import TRUE_CLOSURE_M
 from services.pipeline.runner import (STARTUP_TIMEOUT_S, RunConfig, RunError, Supervisor, check_port_free, clear_previous_run,
                                       wait_port_open)
 
@@ -348,7 +348,7 @@ def evaluate_fleet(folder: Path, names: list[str], online: dict, delays: dict[st
         if one is None or other is None:
             continue
         distance = math.dist(one[:2], other[:2])
-        if closure.fate in ("accepted", "rejected") and distance > TRUE_CLOSURE_M:
+        if closure.fate in ("accepted", "rejected") and not same_place(one[:2], other[:2]):
             decided[f"{closure.fate}_false"] += 1
         if closure.fate == "accepted":
             largest = distance if largest is None else max(largest, distance)

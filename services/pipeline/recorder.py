@@ -16,8 +16,9 @@ import zenoh
 from schemas import ServiceStatus
 from services.common import codec, health, topics
 from services.common.convert import heading_of, image_from_msg, pose_to_matrix
+from services.common.observe import map_items
 from services.common.runtime import RuntimeConfig, open_session
-from services.ros.messages import camera_jpeg, link_kind
+from services.ros.messages import camera_jpeg
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,4 @@ class Recorder:
             elif topic == "grid/activity":
                 r.lattices[seq] = image_from_msg(message.image)
             elif topic == "map/update":
-                r.map_updates.append((seq, [(e.id, e.x, e.y) for e in message.experiences],
-                                      [(link.source, link.target,
-                                        link_kind(link.loop_closure, getattr(link, "accepted", True)))
-                                       for link in message.links]))
+                r.map_updates.append((seq, *map_items(message)))

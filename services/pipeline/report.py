@@ -13,13 +13,13 @@ import numpy as np
 from services.common.layout import session_of
 from services.evaluation import metrics, plots
 from services.evaluation.results import write_json, write_trajectory_files
+from services.evaluation.revisits import TRUE_CLOSURE_M, same_place
 from services.evaluation.trajectory import Trajectory, camera_to_planar, integrate_increments
 from services.pipeline.recorder import Recording
 
 log = logging.getLogger(__name__)
 
 RPE_DISTANCES_M = (1.0, 10.0, 100.0)
-TRUE_CLOSURE_M = 2.0   # a closure between frames farther apart than this (by ground truth) is false
 # Stage → the topic whose arrival times give its latency. `map_online` is the pose expmap published
 # at each frame; `map` is every frame placed on the final, relaxed map (from the map's journal).
 STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map_online": "map/pose", "map": "map/pose"}
@@ -132,12 +132,12 @@ def map_closures(recording: Recording, truth: Trajectory | None) -> dict:
     result = {fate: counts.get(fate, 0) for fate in ("accepted", "rejected", "unmeasured", "unmatched")}
     if truth is not None and recording.map_decisions:
         position = truth_positions(recording, truth)
-        distances = [(fate, math.dist(position[f], position[m])) for f, m, fate in recording.map_decisions
-                     if f in position and m in position]
+        judged = [(fate, same_place(position[f], position[m]), math.dist(position[f], position[m]))
+                  for f, m, fate in recording.map_decisions if f in position and m in position]
         for fate in ("accepted", "rejected", "unmeasured"):
-            result[f"{fate}_true"] = sum(d <= TRUE_CLOSURE_M for x, d in distances if x == fate)
-            result[f"{fate}_false"] = sum(d > TRUE_CLOSURE_M for x, d in distances if x == fate)
-        result["accepted_largest_distance_m"] = max((d for x, d in distances if x == "accepted"), default=None)
+            result[f"{fate}_true"] = sum(true for x, true, _ in judged if x == fate)
+            result[f"{fate}_false"] = sum(not true for x, true, _ in judged if x == fate)
+        result["accepted_largest_distance_m"] = max((d for x, _, d in judged if x == "accepted"), default=None)
     return result
 
 

@@ -26,15 +26,14 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from services.common import health, topics
-from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
+from services.common.config import describe_preset, is_preset_file, load_config, preset_applies
 from services.common.errors import ConfigError, GridslamError
 from services.common.journal import SESSION, read_records
 from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, map_files,
                                      session_base)
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
 from services.common.settings import config_fields
-from services.egomotion import ESTIMATORS
-from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
+from services.egomotion import resolve_estimator, resolve_sharding
 from services.evaluation.results import results_dir, write_config
 from services.evaluation.trajectory import read_tum
 from services.expmap.export import read_log
@@ -105,8 +104,9 @@ class _RunFields(BaseModel):
     robot: str = Field("robot0", description="Robot name.")
     window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
     egomotion_instances: int = Field(
-        1, ge=1, le=16, description="Ego-motion instances sharing the frames (docs/pipeline.md, sharded ego-motion); with "
-                                    "more than one, at least N + 1 blocks of frames are kept in flight.")
+        1, ge=1, le=16, description="Ego-motion instances sharing the frames (docs/pipeline.md, sharded ego-motion): one "
+                                    "runs the estimator frame after frame; more run it in blocks, and at least N + 1 "
+                                    "blocks of frames are kept in flight.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
     closure: Literal["metric", "ratslam"] | None = Field(
         None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
@@ -313,15 +313,23 @@ def egomotion_children(config: RunConfig) -> list[str]:
     return ["egomotion"] + [f"egomotion-{index}" for index in range(2, config.egomotion_instances + 1)]
 
 
+def shard_block(config: RunConfig) -> int | None:
+    """Frames per block the run's egomotion instances run their estimator in, resolved as each
+    of them resolves it (services.egomotion.resolve_sharding: the estimator the preset, the
+    config file or the flags name, [egomotion] shard_block, GRIDSLAM_EGOMOTION_SHARD_BLOCK);
+    None with one instance, which runs it frame after frame."""
+    preset = config.preset if config.preset and preset_applies("egomotion", config.preset) else None
+    estimator, _ = resolve_estimator(config.egomotion, preset, config.config_file, config.camera_height)
+    return resolve_sharding(estimator, config.egomotion_instances, config_file=config.config_file)[1]
+
+
 def source_window(config: RunConfig) -> int:
     """Frames in flight: the configured window, and with several egomotion instances enough for
     each to have a block of frames and the next already sent."""
-    if config.egomotion_instances == 1:
+    block = shard_block(config)
+    if block is None:
         return config.window
-    block = default_block(ESTIMATORS[config.egomotion][0]) if config.egomotion else SHARD_BLOCK
-    if config.config_file is not None:
-        block = read_toml(config.config_file).get("egomotion", {}).get("shard_block", block)
-    return max(config.window, (config.egomotion_instances + SHARDED_SPARE_BLOCKS) * int(block))
+    return max(config.window, (config.egomotion_instances + SHARDED_SPARE_BLOCKS) * block)
 
 
 def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
@@ -333,6 +341,8 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--config", str(config.config_file)]
     if config.preset and preset_applies(name, config.preset):
         args += ["--preset", config.preset]
+    if name == "egomotion":   # each instance is told how many share the frames (one: frame after frame)
+        args += ["--instances", str(config.egomotion_instances)]
     if name == "egomotion" and config.egomotion:
         args += ["--estimator", config.egomotion]
     if name == "egomotion" and config.camera_height:
@@ -340,7 +350,7 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
     if name == "gridcells":
         args += ["--integrator", config.integrator, "--checkpoint", str(folder / GRID_CHECKPOINT)]
         args += ["--decoder", config.decoder] if config.decoder else []
-        args += ["--step", config.step_source] if config.step_source else []
+        args += ["--step-source", config.step_source] if config.step_source else []
         args += ["--modules", str(config.modules)] if config.modules else []
         args += ["--heading", config.heading] if config.heading else []
     if name == "viewer":
@@ -374,7 +384,7 @@ def graph_args(config: RunConfig) -> list[str]:
 def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
-            "--source", config.source, "--start", str(start), "--origin", str(origin_of(config)), "--step", str(config.step),
+            "--source", config.source, "--start", str(start), "--origin", str(origin_of(config)), "--stride", str(config.step),
             "--window", str(source_window(config)), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
     if config.egomotion_instances > 1:
         # Instances work in parallel only on blocks already sent: a window fitted to one frame's

@@ -15,15 +15,15 @@ Prints a Markdown table.
 
 from __future__ import annotations
 
-import argparse
 import socket
 import statistics
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
+
+from services.common.settings import CommandParser
 
 
 def _start(args: list[str]) -> subprocess.Popen:
@@ -129,7 +129,7 @@ def live_source(session, endpoint: str, frames: int, fps: float) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench ros2", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="gridslam bench ros2", description=__doc__.splitlines()[0])
     parser.add_argument("--messages", type=int, default=2000, help="grid/pose messages for the latency")
     parser.add_argument("--rate", type=float, default=100.0, help="grid/pose messages per second")
     parser.add_argument("--frames", type=int, default=300, help="640×480 images for the live source")

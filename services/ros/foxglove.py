@@ -35,16 +35,15 @@ from services.common import codec, topics
 from services.common.config import load_config
 from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.errors import ConfigError
-from services.common.runtime import RuntimeConfig
+from services.common.geometry import planar_from_camera
+from services.common.observe import map_items, observe
+from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
 from services.gridcells.integrator import DeadReckoning, turn_first
 from services.ros.messages import (
-    ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, TOPICS, MapState, RosMessages, camera_jpeg, link_kind,
-    typestore,
+    ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, TOPICS, MapState, RosMessages, camera_jpeg, typestore,
 )
 from services.ros.ws_relay import SubprotocolRelay
-from services.viewer.config import is_loopback
-from services.viewer.state import planar_from_camera
 
 log = logging.getLogger(__name__)
 
@@ -231,13 +230,9 @@ class FoxgloveService(Service):
 
     def setup(self) -> None:
         # drop_stale=False: a seq back at the run's first is a new run, shown afresh (_fresh).
-        self.subscribe("egomotion", self.on_egomotion, drop_stale=False, follows=lambda message: message.previous_seq)
-        self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
-        self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
-        self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
-        self.subscribe("loop/closure", self.on_loop_closure, drop_stale=False, sparse=True)
-        self.subscribe("camera/frame", self.on_camera_frame, newest_only=True, drop_stale=False)
-        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
+        observe(self, {"egomotion": self.on_egomotion, "grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose,
+                       "map/update": self.on_map_update, "loop/closure": self.on_loop_closure,
+                       "camera/frame": self.on_camera_frame, "grid/activity": self.on_grid_activity})
         # A map already built when this service starts: fetch it once (map/update then keeps it).
         self.session.get(topics.key(self.robot, "map/snapshot"), self._on_snapshot, timeout=5.0)
         log.info("foxglove serving %s", self.url)
@@ -313,7 +308,7 @@ class FoxgloveService(Service):
 
     def on_map_update(self, message: MapUpdate) -> None:
         self._take_snapshot()
-        if self._apply_map(message.experiences, message.links):
+        if self.map_state.apply(*map_items(message)):
             self.map_pending = self._stamp(message)
         self._send_map_if_due()
 
@@ -343,11 +338,6 @@ class FoxgloveService(Service):
         self._log(stamp, self.ros.activity(stamp, pixels))
 
     # ----------------------------------------------------------------- the map
-    def _apply_map(self, experiences, links) -> bool:
-        return self.map_state.apply(
-            [(e.id, e.x, e.y) for e in experiences],
-            [(link.source, link.target, link_kind(link.loop_closure, getattr(link, "accepted", True))) for link in links])
-
     def _send_map_if_due(self) -> None:
         now = time.monotonic()
         if self.map_pending is None or now - self.map_sent_at < 1.0 / self.config.map_rate_hz:
@@ -357,7 +347,7 @@ class FoxgloveService(Service):
 
     def _take_snapshot(self) -> None:
         snapshot, self._snapshot = self._snapshot, None
-        if snapshot is not None and self._apply_map(snapshot.experiences, snapshot.links):
+        if snapshot is not None and self.map_state.apply(*map_items(snapshot)):
             self.map_pending = self._stamp(snapshot)
 
     def _on_snapshot(self, reply) -> None:   # a Zenoh thread: the main thread applies it (_take_snapshot)

@@ -16,11 +16,12 @@ Medians of `--repeats` runs, printed as a Markdown table.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import statistics
 import time
+
+from services.common.settings import CommandParser
 
 STAGES = ("egomotion", "gridcells", "map", "groundtruth")
 
@@ -113,7 +114,7 @@ def finished_run(frames: int) -> tuple[float, int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench foxglove", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="gridslam bench foxglove", description=__doc__.splitlines()[0])
     parser.add_argument("--messages", type=int, default=20000, help="Odometry messages through the relay")
     parser.add_argument("--frames", type=int, default=4541, help="frames of the finished run (KITTI 00 has 4541)")
     parser.add_argument("--repeats", type=int, default=3, help="runs of each measurement (medians)")

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.common.observe import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC
 from services.common.errors import ConfigError
 
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -80,8 +81,6 @@ OPTICAL_ROTATION = (-0.5, 0.5, -0.5, 0.5)
 # Camera images are recorded as JPEG at most this wide (a KITTI frame becomes 640×194).
 CAMERA_MAX_WIDTH = 640
 CAMERA_JPEG_QUALITY = 85
-# Link kinds of the experience map, as the viewer draws them.
-ODOMETRIC, CLOSURE_KEPT, CLOSURE_REFUSED = 0, 1, 2
 # Marker colours (r, g, b, a): the viewer's palette.
 COLOURS = {"experiences": (0.42, 0.25, 0.71, 0.9), ODOMETRIC: (0.42, 0.25, 0.71, 0.45),
            CLOSURE_KEPT: (0.88, 0.2, 0.1, 1.0), CLOSURE_REFUSED: (0.55, 0.55, 0.55, 0.8)}
@@ -119,11 +118,6 @@ def planar_covariance_6x6(covariance) -> np.ndarray:
     index = [0, 1, 5]
     full[np.ix_(index, index)] = planar
     return full.reshape(36)
-
-
-def link_kind(loop_closure: bool, accepted: bool = True) -> int:
-    """ODOMETRIC, CLOSURE_KEPT or CLOSURE_REFUSED (a closure the map did not let bend it)."""
-    return ODOMETRIC if not loop_closure else CLOSURE_KEPT if accepted else CLOSURE_REFUSED
 
 
 @dataclass

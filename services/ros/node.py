@@ -28,6 +28,7 @@ from services.common import topics as gridslam_topics
 from services.common.config import load_config
 from services.common.convert import image_from_msg
 from services.common.errors import ConfigError
+from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import add_flag, config_fields, params_of
@@ -102,11 +103,9 @@ class Ros2Service(Service):
         self.node = RosNode(self.session, NODE_NAME, normalise_namespace(p.ros_namespace), p.ros_domain_id,
                             p.ros_distro, p.ros2_keys, hashes=self.ros.rihs01)
         self.publishers = {topic: self.node.publisher(topic, msgtype, qos) for topic, (msgtype, qos) in TOPICS.items()}
-        # drop_stale=False: a seq going backwards is a new run (the projection starts afresh).
-        self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
-        self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
-        self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
-        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
+        # A seq going backwards is a new run (the projection starts afresh).
+        observe(self, {"grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose, "map/update": self.on_map_update,
+                       "grid/activity": self.on_grid_activity})
         if self.config.fleet:   # every robot's fleet pose (the fleet map's key space: gridslam/@v1/fleet/<robot>/pose)
             self.subscribe(gridslam_topics.fleet_pose_topic("*"), self.on_fleet_pose, robot=gridslam_topics.FLEET,
                            drop_stale=False, sparse=True)
@@ -145,8 +144,8 @@ class Ros2Service(Service):
         self._put_ros(self.projection.due(time.monotonic()))
 
     def on_map_update(self, message: MapUpdate) -> None:
-        self.projection.map_update(self._stamp(message), [(e.id, e.x, e.y, e.heading) for e in message.experiences],
-                                   [(k.source, k.target, k.loop_closure, k.accepted) for k in message.links])
+        self.projection.map_update(message.header.seq, self._stamp(message),
+                                   [(e.id, e.x, e.y, e.heading) for e in message.experiences], map_items(message)[1])
 
     def on_fleet_pose(self, message: FleetPose) -> None:
         """A robot's pose in the fleet frame, once joined: /fleet/<robot>/pose in the shared `map` frame."""

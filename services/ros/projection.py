@@ -12,6 +12,10 @@ where gridslam messages become ROS 2 messages); the adapter decodes and publishe
   (the map stage publishes none of its own).
 - `path` (nav_msgs/Path, frame `map`): every frame placed on its experience as the map now has
   it (the experience map's corrected trajectory), at most every `path_period_s` and at the end.
+  A frame's offset from its experience is taken against the experience as the map had it at that
+  frame: map/update and map/pose are different keys, whose samples Zenoh may deliver in either
+  order, so a recent frame's offset is taken again when an update of its own frame or an earlier
+  one comes after it.
 - `experience_map` (visualization_msgs/MarkerArray), at most every `map_period_s` and at the end.
 - `grid_activity` (sensor_msgs/Image, mono8) of the lattice.
 """
@@ -23,8 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.expmap.graph import between, compose
-from services.ros.messages import MapState, RosMessages, link_kind, planar_covariance_6x6, yaw_quaternion
+from services.common.geometry import between, compose
+from services.ros.messages import MapState, RosMessages, planar_covariance_6x6, yaw_quaternion
 
 ODOM_FRAME, BASE_FRAME, MAP_FRAME, GRID_FRAME = "odom", "base_link", "map", "grid"
 # Topic names, relative to the node's namespace (absolute ones stay).
@@ -59,6 +63,7 @@ class Projection:
     grid_poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # seq → odom pose
     experiences: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     frames: list[tuple[int, int, tuple[float, float, float]]] = field(default_factory=list)  # (stamp, experience, offset)
+    recent_frames: dict[int, tuple[int, tuple[float, float, float]]] = field(default_factory=dict)  # seq → (index in frames, map pose)
     map_state: MapState = field(default_factory=MapState)
     path_pending: int | None = None   # stamp of a change not sent yet
     map_pending: int | None = None
@@ -114,21 +119,26 @@ class Projection:
         messages.append((POSE, self.ros.pose_with_covariance(stamp, MAP_FRAME, (pose[0], pose[1], 0.0),
                                                              yaw_quaternion(pose[2]),
                                                              planar_covariance_6x6(self.covariance))))
-        anchor = self.experiences.get(experience)
-        if anchor is not None:
-            self.frames.append((stamp, experience, between(anchor, pose)))
-        else:   # (an experience not announced yet: the frame stays where it was put)
-            self.experiences[experience] = pose
-            self.frames.append((stamp, experience, (0.0, 0.0, 0.0)))
+        anchor = self.experiences.setdefault(experience, pose)   # (not announced yet: the frame stays where it was put)
+        self.frames.append((stamp, experience, between(anchor, pose)))
+        self.recent_frames[seq] = (len(self.frames) - 1, pose)
+        while len(self.recent_frames) > RECENT_FRAMES:
+            del self.recent_frames[next(iter(self.recent_frames))]
         self.path_pending = stamp
         return messages
 
-    def map_update(self, stamp: int, experiences, links) -> None:
-        """Experiences created or moved `[(id, x, y, heading)]`, links created `[(source, target, closure, accepted)]`."""
+    def map_update(self, seq: int, stamp: int, experiences, links) -> None:
+        """Experiences created or moved at frame `seq` `[(id, x, y, heading)]`, links created
+        `[(source, target, kind)]` (common.observe's link kinds)."""
         for experience, x, y, heading in experiences:
             self.experiences[experience] = (float(x), float(y), float(heading))
+        moved = {experience for experience, *_ in experiences}
+        for frame_seq, (index, pose) in self.recent_frames.items():   # frames placed before this update reached the node
+            stamp_of, experience, _ = self.frames[index]
+            if frame_seq >= seq and experience in moved:
+                self.frames[index] = (stamp_of, experience, between(self.experiences[experience], pose))
         if self.map_state.apply([(e, x, y) for e, x, y, _ in experiences],
-                                [(s, t, link_kind(closure, accepted)) for s, t, closure, accepted in links]):
+                                links):
             self.map_pending = stamp
             self.path_pending = stamp
 
@@ -157,6 +167,7 @@ class Projection:
         self.waiting.clear()
         self.last_map_seq = -1
         self.frames.clear()
+        self.recent_frames.clear()
         self.experiences.clear()
         self.map_state = MapState()
         self.path_pending = self.map_pending = None

@@ -27,7 +27,8 @@ from typing import Iterator
 import numpy as np
 
 from services.source.calibration import DEFAULT_FOV_DEG, assumed_camera
-from services.source.frames import Camera, Frame, SourceError, planar_motion
+from services.common.geometry import planar_motion
+from services.source.frames import Camera, Frame, SourceError
 from services.source.rosbag import (
     CAMERA_INFO_TYPE, IMAGE_TYPES, ODOMETRY_TYPE, camera_from_info, camera_pose_of_planar, decode_image,
     interpolate_planar,

@@ -38,7 +38,8 @@ import cv2
 import numpy as np
 
 from services.source.datasets import IndexedSource
-from services.source.frames import Camera, Frame, SourceError, planar_motion
+from services.common.geometry import planar_motion
+from services.source.frames import Camera, Frame, SourceError
 
 log = logging.getLogger(__name__)
 

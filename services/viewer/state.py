@@ -19,7 +19,6 @@ frame sent and acknowledged); a service whose liveliness token is gone after a s
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 from statistics import median
@@ -27,6 +26,7 @@ from statistics import median
 import cv2
 import numpy as np
 
+from services.common.geometry import planar_from_camera
 from services.gridcells.integrator import DeadReckoning, turn_first
 
 STAGES = ("ground_truth", "egomotion", "grid", "map")
@@ -371,14 +371,6 @@ class ViewerState:
         arrival = self._arrivals.get(seq)
         if arrival is not None and now >= arrival:
             self._latency[stage].append(now - arrival)
-
-
-def planar_from_camera(matrix: np.ndarray) -> tuple[float, float, float]:
-    """Planar (x forward, y left, yaw counter-clockwise) pose of a camera pose given in the
-    camera convention (x right, y down, z forward): forward = z, left = −x, and the heading of
-    the optical axis, atan2(−R[0,2], R[2,2]) (docs/sources.md, Conventions)."""
-    m = np.asarray(matrix, dtype=float)
-    return float(m[2, 3]), float(-m[0, 3]), math.atan2(-m[0, 2], m[2, 2])
 
 
 def display_image(pixels: np.ndarray, encoding: str, max_width: int) -> np.ndarray:

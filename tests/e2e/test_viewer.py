@@ -33,7 +33,7 @@ from schemas import (
 from services.common import codec, topics
 from services.common.convert import image_to_msg, matrix_to_pose, planar_pose
 from services.source.synthetic import SyntheticWorld, WorldConfig
-from services.viewer.state import planar_from_camera
+from services.common.geometry import planar_from_camera
 from tests.browser import Browser, chromium_and_driver
 from tests.netutil import REPO, client_session, endpoint, free_port, port_open, start, start_router, stop, wait_for
 

@@ -23,7 +23,8 @@ from services.common.runtime import RuntimeConfig
 from services.evaluation import metrics
 from services.evaluation.trajectory import Trajectory, read_tum
 from services.expmap.export import MapExportError, export_map, graph_dict, read_log
-from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, Link, MapParams, between, compose, wrap
+from services.common.geometry import between, compose, wrap
+from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, Link, MapParams
 from services.expmap.service import ExpMapConfig, ExpMapService
 from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, replay, write_checkpoint
 

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from services.expmap.graph import between, compose
+from services.common.geometry import between, compose
 from services.fleetmap.catchup import ClosureIntake, map_increment
 from services.fleetmap.consistency import Candidate, ConsistencyParams, consistency_graph, maximum_clique
 from services.fleetmap.graph import ClosureInput, FleetMap, FleetParams

@@ -11,7 +11,8 @@ import math
 import numpy as np
 
 from services.common.layout import session_base
-from services.expmap.graph import ClosureInput, ExperienceMap, MapParams, between, compose
+from services.common.geometry import between
+from services.expmap.graph import ClosureInput, ExperienceMap, MapParams
 from services.expmap.store import MapStore, Step, sessions_of
 from tests.unit.test_expmap import CLOSURE_COVARIANCE, drive_square
 

@@ -17,7 +17,8 @@ from mcap_ros2.decoder import DecoderFactory   # noqa: E402
 
 from services.evaluation.trajectory import Trajectory   # noqa: E402
 from services.ros.mcap_export import MARKER_PERIOD_S, RunContent, write_run_mcap   # noqa: E402
-from services.ros.messages import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC, STAGES, TOPICS, MapState   # noqa: E402
+from services.common.observe import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC   # noqa: E402
+from services.ros.messages import STAGES, TOPICS, MapState   # noqa: E402
 
 FRAMES = 30
 FPS = 10.0

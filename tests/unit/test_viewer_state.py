@@ -14,12 +14,13 @@ import pytest
 from schemas import CameraFrame, GridPose, MapPose
 from services.common.convert import image_to_msg, planar_pose
 from services.common.errors import ConfigError
+from services.common.geometry import planar_from_camera
 from services.common.runtime import RuntimeConfig
 from services.viewer.config import ViewerConfig
 from services.common.service import Subscription
 from services.viewer.service import INBOX_SIZE, ViewerService
 from services.viewer.state import (
-    Cursor, ViewerParams, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png, planar_from_camera,
+    Cursor, ViewerParams, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png,
 )
 from tests.messages import header, sample_messages
 
