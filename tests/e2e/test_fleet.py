@@ -131,9 +131,9 @@ def test_two_sites_cut_apart_and_joined_again_lose_no_place_and_fuse_nothing_twi
     members = {}
     try:
         time.sleep(3)
-        base = RunConfig(source="synthetic:0", preset="synthetic", egomotion="passthrough", n_frames=160, fleet=True,
+        base = RunConfig(source="synthetic:0", preset="synthetic", egomotion="passthrough", n_frames=240, fleet=True,
                          origin=0, mcap=False)
-        for robot, start_frame, site, router in (("a", 0, site_a, router_a), ("b", 80, site_b, router_b)):
+        for robot, start_frame, site, router in (("a", 0, site_a, router_a), ("b", 120, site_b, router_b)):
             folder = tmp_path / robot
             folder.mkdir()
             (folder / "member.json").write_text(base.model_copy(update={"robot": robot, "start": start_frame,
