@@ -31,7 +31,7 @@ from services.common.errors import ConfigError
 from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.settings import add_flag, config_fields, params_of
+from services.common.settings import add_field_flag, add_flag, config_fields, params_of
 from services.ros import projection
 from services.ros.messages import IMAGE, MARKER_ARRAY, ODOMETRY, PATH, POSE_WITH_COVARIANCE, TF, RosMessages, yaw_quaternion
 from services.ros.rmw_zenoh import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TF_QOS, GraphParams, Qos, WireError, normalise_namespace
@@ -195,7 +195,7 @@ def load_graph_config(model, args_or_flags: dict, config_file=None):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_graph_arguments(parser)
-    parser.add_argument("--fleet", action="store_true", default=None, help=_Ros2Fields.model_fields["fleet"].description)
+    add_field_flag(parser, Ros2Config, "fleet")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
