@@ -1,13 +1,19 @@
 """gridslam wire messages: one pydantic model per message (DESIGN.md, "Messages")."""
 
 from schemas.base import SCHEMA_VERSION, Header, Image, PlanarIncrement, Point, Pose, Quaternion, Time, Twist, Vector3
+from schemas.fleet import (
+    FleetClosureRecord, FleetClosures, FleetExperience, FleetLink, FleetPlaces, FleetPose, FleetRobot, FleetSnapshot,
+    FleetUpdate, PlaceRecord,
+)
 from schemas.messages import (
-    MESSAGES, CameraFrame, CameraInfo, EgoMotion, Experience, GridActivity, GridPose, Link, LoopClosure,
-    MapPose, MapRoute, MapSnapshot, MapUpdate, ServiceStatus, ViewTemplate,
+    MESSAGES, CameraFrame, CameraInfo, EgoMotion, Experience, FramePlacement, GridActivity, GridPose, Link, LoopClosure,
+    MapFrames, MapPose, MapRoute, MapSnapshot, MapUpdate, ServiceStatus, ViewTemplate,
 )
 
 __all__ = [
     "SCHEMA_VERSION", "MESSAGES", "Header", "Image", "PlanarIncrement", "Point", "Pose", "Quaternion", "Time",
     "Twist", "Vector3", "CameraFrame", "CameraInfo", "EgoMotion", "Experience", "GridActivity", "GridPose",
     "Link", "LoopClosure", "MapPose", "MapRoute", "MapSnapshot", "MapUpdate", "ServiceStatus", "ViewTemplate",
+    "FramePlacement", "MapFrames", "FleetClosureRecord", "FleetClosures", "FleetExperience", "FleetLink", "FleetPlaces",
+    "FleetPose", "FleetRobot", "FleetSnapshot", "FleetUpdate", "PlaceRecord",
 ]

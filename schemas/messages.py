@@ -9,6 +9,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 
 from schemas.base import Header, Image, Message, Model, PlanarIncrement, Point, Pose, Twist, PlanarCovariance, covariance_field
+from schemas.fleet import FleetClosures, FleetPlaces, FleetPose, FleetSnapshot, FleetUpdate
 
 
 class CameraInfo(Model):
@@ -162,6 +163,9 @@ class Link(Model):
     loop_closure: bool = Field(False, description="True for a link made by a confirmed loop closure.")
     accepted: bool = Field(True, description="False for a closure the map refused (its odometry contradicts it): kept as "
                                              "evidence, not used to place the experiences.")
+    covariance: PlanarCovariance | None = Field(
+        None, description="The link's covariance in the pose graph (x m, y m, heading rad of the target in the source's "
+                          "frame, right-hand tangent), 3×3 row-major; absent when the map has none (RatSLAM's relaxation).")
 
 
 class MapUpdate(Message):
@@ -180,6 +184,24 @@ class MapSnapshot(Message):
     header: Header = Field(description="Last frame applied to the map and its timestamp.")
     experiences: list[Experience] = Field(description="Every experience.")
     links: list[Link] = Field(description="Every link.")
+
+
+class FramePlacement(Model):
+    """Where the map puts one frame: at an experience, and the offset from it."""
+
+    frame: int = Field(ge=0, description="The frame (the map's numbering).")
+    experience: int = Field(ge=0, description="The experience the robot was at.")
+    dx: float = Field(description="Forward offset of the frame's pose in the experience's frame, metres.")
+    dy: float = Field(description="Leftward offset, metres.")
+    dheading: float = Field(description="Heading of the frame minus the experience's, radians.")
+
+
+class MapFrames(Message):
+    """Reply of the `map/frames?from=F;to=T` queryable: where the map puts each of those frames
+    (the fleet map's way to place a closure of a frame whose map/pose it missed)."""
+
+    header: Header = Field(description="Last frame applied to the map; frame_id 'map'.")
+    frames: list[FramePlacement] = Field(description="The frames from F to T the map has, in order.")
 
 
 class MapRoute(Message):
@@ -222,5 +244,6 @@ class ServiceStatus(Message):
 
 MESSAGES: tuple[type[Message], ...] = (
     CameraFrame, EgoMotion, GridPose, GridActivity, ViewTemplate, LoopClosure,
-    MapPose, MapUpdate, MapSnapshot, MapRoute, ServiceStatus,
+    MapPose, MapUpdate, MapSnapshot, MapRoute, MapFrames, ServiceStatus,
+    FleetPlaces, FleetClosures, FleetPose, FleetUpdate, FleetSnapshot,
 )

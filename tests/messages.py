@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from schemas import (
-    CameraFrame, CameraInfo, EgoMotion, Experience, GridActivity, GridPose, Header, Link, LoopClosure, MapPose,
-    MapRoute, MapSnapshot, MapUpdate, PlanarIncrement, Point, ServiceStatus, Time, ViewTemplate,
+    CameraFrame, CameraInfo, EgoMotion, Experience, FleetClosureRecord, FleetClosures, FleetExperience, FleetLink,
+    FleetPlaces, FleetPose, FleetRobot, FleetSnapshot, FleetUpdate, FramePlacement, GridActivity, GridPose, Header, Link,
+    LoopClosure, MapFrames, MapPose, MapRoute, MapSnapshot, MapUpdate, PlaceRecord, PlanarIncrement, Point, ServiceStatus,
+    Time, ViewTemplate,
 )
 from schemas.base import Message
 from services.common.convert import image_to_msg, planar_pose
@@ -21,7 +23,13 @@ def sample_messages(seq: int = 7) -> list[Message]:
     grey = rng.integers(0, 256, (24, 32), dtype=np.uint8)
     experiences = [Experience(id=0, x=0.0, y=0.0, heading=0.0, template_id=0, frame=0),
                    Experience(id=1, x=1.5, y=-0.5, heading=0.3, template_id=2, frame=4)]
-    links = [Link(source=0, target=1, dx=1.5, dy=-0.5, dheading=0.3, frame=4)]
+    links = [Link(source=0, target=1, dx=1.5, dy=-0.5, dheading=0.3, frame=4,
+                  covariance=[1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-6])]
+    robots = [FleetRobot(name="a", joined=True, joined_at=0, part="a", experiences=2),
+              FleetRobot(name="b", joined=False, part="b", experiences=1)]
+    fleet_experiences = [FleetExperience(robot="a", id=0, x=0.0, y=0.0, heading=0.0),
+                         FleetExperience(robot="b", id=0, x=4.0, y=1.0, heading=3.0)]
+    fleet_links = [FleetLink(robot="b", index=0, experience=0, matched_robot="a", matched_experience=1, fate="pending")]
     return [
         CameraFrame(header=header(seq), left=image_to_msg(grey), right=image_to_msg(grey[::-1].copy()),
                     camera_info=CameraInfo(fx=400.0, fy=400.0, cx=16.0, cy=12.0, baseline=0.12),
@@ -39,6 +47,15 @@ def sample_messages(seq: int = 7) -> list[Message]:
         MapSnapshot(header=header(seq, "map"), experiences=experiences, links=links),
         MapRoute(header=header(seq, "map"), start=Point(x=0.1, y=0.0), goal=Point(x=1.4, y=-0.4), experiences=[0, 1],
                  poses=[planar_pose(0.0, 0.0, 0.0), planar_pose(1.5, -0.5, 0.3)], length=1.58, found=True),
+        MapFrames(header=header(seq, "map"), frames=[FramePlacement(frame=4, experience=1, dx=0.1, dy=0.0, dheading=0.01)]),
+        FleetPlaces(header=header(seq), places=[PlaceRecord(place=3, frame=seq, keyframe=bytes(range(40)))], place_count=4),
+        FleetClosures(header=header(seq), closures=[FleetClosureRecord(
+            index=0, frame=seq, matched_robot="a", matched_place=2, matched_frame=3, votes=7, measurement="stereo",
+            relative_pose=PlanarIncrement(forward=0.2, left=0.0, yaw=0.01),
+            covariance=[1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-6], inliers=80)], closure_count=1),
+        FleetPose(header=header(seq, "map"), pose=planar_pose(2.0, 1.0, 0.5), heading=0.5, experience_id=1, joined=True),
+        FleetUpdate(header=header(seq, "map"), robots=robots, experiences=fleet_experiences, links=fleet_links),
+        FleetSnapshot(header=header(seq, "map"), robots=robots, experiences=fleet_experiences, links=fleet_links),
         ServiceStatus(header=header(seq), service="gridcells", instance="host-1", state="running", received=10,
                       published=10, decode_errors=1, gaps=0, stale=0, uptime=3.5),
     ]

@@ -14,6 +14,7 @@ from services.common.runtime import DEFAULT_ROUTER
 from services.common.settings import add_flag, note_renamed
 from services.common.stages import ESTIMATORS, STEP_SOURCES, GridStageParams
 from services.expmap.service import add_map_arguments
+from services.pipeline.fleet import add_fleet_arguments
 from services.loopclosure.service import add_place_recognition_argument
 from services.ros.node import add_graph_arguments, graph_flags
 from services.source.calibration import OPTIONAL_KEYS, REQUIRED_KEYS
@@ -151,6 +152,8 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
                                                                        HELP_WIDTH - 4))
     add_world_arguments(world)
 
+    add_fleet_arguments(parser)
+
 
 class OldStep(argparse.Action):
     """`--step`, once both the frame stride and the grid cells' step source: a number is read as
@@ -248,6 +251,12 @@ def execute(args, **defaults) -> int:
     config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args),
                          flags=RUN_FLAGS)
     progress = Progress()
+    if args.fleet:
+        from services.pipeline.fleet import run_fleet_command
+        try:
+            return run_fleet_command(args, config, progress=progress)
+        finally:
+            progress.close()
     try:
         result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite, serve=True,
                               announce=lambda line: print(line, file=sys.stderr, flush=True))

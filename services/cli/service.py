@@ -18,6 +18,7 @@ SERVICES: dict[str, str] = {
     "gridcells": "services.gridcells.service",
     "loopclosure": "services.loopclosure.service",
     "expmap": "services.expmap.service",
+    "fleetmap": "services.fleetmap.service",
     "viewer": "services.viewer.service",
     "foxglove": "services.ros.foxglove",
     "ros2": "services.ros.node",

@@ -181,7 +181,8 @@ class Service:
 
     def subscribe(self, topic: str, handler: Callable[[Message], None], *, newest_only: bool = False,
                   drop_stale: bool = True, sparse: bool = False, follows: Callable[[Message], int | None] | None = None,
-                  on_stale: Callable[[Message], None] | None = None, handled_up_to: int | None = None) -> None:
+                  on_stale: Callable[[Message], None] | None = None, handled_up_to: int | None = None,
+                  robot: str | None = None) -> None:
         """Call `handler(message)` on the main thread for every valid message on `topic`.
 
         `newest_only` keeps just the latest unhandled sample (a live camera: old frames are
@@ -196,7 +197,8 @@ class Service:
         `on_stale(message)` is called for a stale message (a frame sent again) instead of
         publishing this service's earlier outputs for it again (`replay_outputs`). `handled_up_to`:
         the last seq a previous process of this service handled (it resumed from a checkpoint):
-        messages up to it are stale."""
+        messages up to it are stale. `robot`: another robot's topic (a key chunk, `*` for every
+        robot's: the fleet's), instead of this service's robot's."""
         assert self.session is not None, "subscribe() belongs in setup()"
         index = len(self._subscriptions)
         subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale, sparse or newest_only,
@@ -220,7 +222,7 @@ class Service:
 
         # An observer's or a newest-only subscription wants no old samples: nothing is asked for again.
         recovered = recovers(topic) and not (newest_only or self.observer)
-        self._entities.append(declare_subscriber(self.session, topics.key(self.robot, topic), on_sample, recovered))
+        self._entities.append(declare_subscriber(self.session, topics.key(robot or self.robot, topic), on_sample, recovered))
 
     def queryable(self, topic: str, answer: Callable[..., Message], parameters: bool = False) -> None:
         """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only);

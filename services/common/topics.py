@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from schemas import (
-    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate, ServiceStatus,
-    ViewTemplate,
+    CameraFrame, EgoMotion, FleetClosures, FleetPlaces, FleetPose, FleetSnapshot, FleetUpdate, GridActivity, GridPose,
+    LoopClosure, MapFrames, MapPose, MapRoute, MapSnapshot, MapUpdate, ServiceStatus, ViewTemplate,
 )
 from schemas.base import Message
 
@@ -22,13 +22,37 @@ TOPICS: dict[str, type[Message]] = {
     "map/update": MapUpdate,
     "map/snapshot": MapSnapshot,
     "map/route": MapRoute,
+    "map/frames": MapFrames,
+    "fleet/place": FleetPlaces,      # a robot's new place, for the other robots (docs/fleet.md)
+    "fleet/places": FleetPlaces,     # queryable: its places from an id on
+    "fleet/closure": FleetClosures,  # the inter-robot closures it confirmed, for the fleet map
+    "fleet/closures": FleetClosures, # queryable: its closures from an index on
     "status": ServiceStatus,
 }
 
+# The fleet map publishes in the key space of the pseudo-robot FLEET: `gridslam/@v1/fleet/<robot>/pose`
+# for each robot, `gridslam/@v1/fleet/update` and the queryable `gridslam/@v1/fleet/snapshot`.
+FLEET = "fleet"
+FLEET_TOPICS: dict[str, type[Message]] = {"update": FleetUpdate, "snapshot": FleetSnapshot}
+
+
+def fleet_pose_topic(robot: str) -> str:
+    """The fleet map's topic of one robot's pose in the fleet frame (under the robot chunk FLEET)."""
+    return f"{robot}/pose"
+
 
 def model_of(topic: str) -> type[Message]:
-    """The message model carried by `topic` (status/<service>/<instance> carries ServiceStatus)."""
-    return ServiceStatus if topic.startswith("status/") else TOPICS[topic]
+    """The message model carried by `topic` (status/<service>/<instance> carries ServiceStatus; in
+    the fleet map's key space, `<robot>/pose` carries FleetPose)."""
+    if topic.startswith("status/"):
+        return ServiceStatus
+    if topic in TOPICS:
+        return TOPICS[topic]
+    if topic in FLEET_TOPICS:
+        return FLEET_TOPICS[topic]
+    if topic.count("/") == 1 and topic.endswith("/pose"):
+        return FleetPose
+    raise KeyError(topic)
 
 
 def key(robot: str, topic: str) -> str:

@@ -11,6 +11,7 @@ frames after it."""
 from __future__ import annotations
 
 import argparse
+import bisect
 import collections
 import csv
 import logging
@@ -24,7 +25,8 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate, Point, ViewTemplate
+from schemas import (Experience, FramePlacement, GridPose, Link, LoopClosure, MapFrames, MapPose, MapRoute, MapSnapshot,
+                     MapUpdate, Point, ViewTemplate)
 from services.common.config import load_config
 from services.common.convert import planar_pose
 from services.common.errors import ConfigError, DataError, PersistenceError
@@ -44,6 +46,7 @@ log = logging.getLogger(__name__)
 # a pose would overflow the map's arithmetic after it was journaled, so it is rejected before.
 MAX_COORDINATE_M = 1e7
 MAX_HEADING_RAD = 1e6
+MAX_FRAMES_REPLY = 5000   # frames in one map/frames reply (the fleet map asks again from the next)
 
 
 class MapInputError(DataError):
@@ -85,8 +88,27 @@ def experience_message(experience_map: ExperienceMap, index: int) -> Experience:
                       template_id=experience_map.templates[index], frame=experience_map.created[index])
 
 
-def link_message(link) -> Link:
-    return Link(**asdict(link))
+def link_message(link, covariance=None) -> Link:
+    """The wire form of a link, with its covariance in the pose graph when there is one (the fleet map's input)."""
+    return Link(**asdict(link), covariance=None if covariance is None else
+                [float(v) for v in (np.asarray(covariance) + np.asarray(covariance).T).ravel() / 2])
+
+
+def link_covariances(experience_map: ExperienceMap, start: int, stop: int) -> list:
+    """The covariances of the map's links start..stop-1 (None each under an optimiser without them)."""
+    covariances = getattr(experience_map.optimizer, "covariances", None)
+    return list(covariances[start:stop]) if covariances is not None and len(covariances) >= stop else [None] * (stop - start)
+
+
+def frame_placements(experience_map: ExperienceMap, first: int, last: int) -> list[FramePlacement]:
+    """Where the map puts its frames `first`..`last`: the experience and the offset from it."""
+    start = bisect.bisect_left(experience_map.frames, first, key=lambda row: row[0])
+    placements = []
+    for frame, experience, (dx, dy, dheading) in experience_map.frames[start:start + MAX_FRAMES_REPLY]:
+        if frame > last:
+            break
+        placements.append(FramePlacement(frame=frame, experience=experience, dx=dx, dy=dy, dheading=dheading))
+    return placements
 
 
 def closure_row(frame: int, c: ClosureInput, fate: str, residual: float | None) -> tuple:
@@ -156,6 +178,7 @@ class ExpMapService(Service):
         self.subscribe("loop/closure", self.on_closure, sparse=True, drop_stale=False)
         self.queryable("map/snapshot", self.snapshot)
         self.queryable("map/route", self.route, parameters=True)
+        self.queryable("map/frames", self.frames, parameters=True)
 
     def teardown(self) -> None:
         if self.writer is not None:
@@ -255,7 +278,9 @@ class ExpMapService(Service):
             self.publish("map/update", MapUpdate(
                 header=pose.header.model_copy(update={"frame_id": "map"}),
                 experiences=[experience_message(self.map, i) for i in changed],
-                links=[link_message(link) for link in result.new_links],
+                links=[link_message(link, covariance) for link, covariance in
+                       zip(result.new_links, link_covariances(self.map, len(self.map.links) - len(result.new_links),
+                                                              len(self.map.links)))],
                 experience_count=len(self.map), link_count=len(self.map.links)))
         self._publish_pose(pose, result)
 
@@ -274,11 +299,20 @@ class ExpMapService(Service):
         """Called on a Zenoh thread: the map as of one frame, copied under the lock, serialised outside it."""
         with self.lock:
             state: MapState = self.map.snapshot()
+            covariances = link_covariances(self.map, 0, len(state.links))
         return MapSnapshot(header=self.header(state.frame or 0, 0.0, "map"),
                            experiences=[Experience(id=i, x=float(x), y=float(y), heading=float(heading),
                                                    template_id=state.templates[i], frame=state.created[i])
                                         for i, (x, y, heading) in enumerate(state.poses)],
-                           links=[link_message(link) for link in state.links])
+                           links=[link_message(link, covariance) for link, covariance in zip(state.links, covariances)])
+
+    def frames(self, parameter) -> MapFrames:
+        """Called on a Zenoh thread: where the map puts the frames `from`..`to` (map/frames?from=F;to=T)."""
+        first, last = (parse_frame(parameter(name), name) for name in ("from", "to"))
+        with self.lock:
+            frame = self.map.last_frame or 0
+            placements = frame_placements(self.map, first, last)
+        return MapFrames(header=self.header(frame, 0.0, "map"), frames=placements)
 
     def route(self, parameter) -> MapRoute:
         """Called on a Zenoh thread: the shortest route between the points the query's parameters
@@ -329,6 +363,17 @@ def parse_point(text: str | None, name: str) -> tuple[float, float]:
     if not (math.isfinite(x) and math.isfinite(y)):
         raise ConfigError(f"map/route: parameter {name!r} must be finite, got {text!r}")
     return x, y
+
+
+def parse_frame(text: str | None, name: str) -> int:
+    """A frame number of a map/frames query's parameter ``name``."""
+    try:
+        value = int(text or "")
+    except ValueError:
+        raise ConfigError(f"map/frames: parameter {name!r} must be a frame number, got {text!r}") from None
+    if value < 0:
+        raise ConfigError(f"map/frames: parameter {name!r} must be ≥ 0, got {text!r}")
+    return value
 
 
 def route_message(route, start, goal, header) -> MapRoute:

@@ -88,6 +88,7 @@ class Observation:
     vote: MeasuredVote | None = None            # this frame's possible closure
     journal_view: dict | None = None            # what the recogniser must replay (a new place, a sequence patch)
     candidate: tuple[int, float] | None = None  # the best older place's frame and score (precision–recall)
+    view: _Frame | None = None                  # the frame as the detector saw it (its features, found once)
 
 
 class MemoryKeyframes:
@@ -184,7 +185,7 @@ class LoopClosureDetector:
             journal_view = {**(journal_view or {}), **(self.places.store(match, keyframe) or {})}
         chosen = self.rule.choose(seq, recognised.votes)
         vote = None if chosen is None else MeasuredVote(*chosen, self._measure(*chosen, match, frame))
-        return Observation(match, self._confirm(seq, vote), vote, journal_view, recognised.candidate)
+        return Observation(match, self._confirm(seq, vote), vote, journal_view, recognised.candidate, frame)
 
     def replay(self, seq: int, match: ViewMatch, journal_view: dict | None, vote: MeasuredVote | None) \
             -> tuple[Confirmed, ...]:

@@ -7,6 +7,7 @@ import argparse
 import collections
 import dataclasses
 import logging
+import threading
 from pathlib import Path
 from typing import Any, Literal
 
@@ -26,6 +27,8 @@ from services.common.stages import CLOSURES
 from services.loopclosure.bow import BowParams
 from services.loopclosure.consistency import ConsistencyParams
 from services.loopclosure.detector import Confirmed, LoopClosureDetector, MeasuredVote, Measurement
+from services.loopclosure.fleet import FleetParams
+from services.loopclosure.fleet_member import FleetMember, FleetSyncParams
 from services.loopclosure.geometry import GeometryParams
 from services.loopclosure.keyframes import KeyframeStore, check_file as check_keyframes
 from services.loopclosure.places import DEFAULT_PLACE_RECOGNITION, PLACE_RECOGNITIONS
@@ -61,6 +64,8 @@ class _LoopClosureFields(BaseModel):
         None, description="A results folder whose map to start from (its places and keyframes, read only): this run is "
                           "its next session, and its journal (`store`, required) the whole map.")
     localize: bool = Field(False, description="With `map`: localise on it only; no place is stored.")
+    fleet: bool = Field(False, description="Take part in a fleet (docs/fleet.md): send this robot's new places to the other "
+                                           "robots, learn theirs, and confirm inter-robot closures (keys fleet_*).")
     store: Path | None = Field(
         None, description="Journal of templates and matches, appended every frame; a restarted service resumes from it. "
                           "Keyframes go beside it (same name, suffix .keyframes).")
@@ -111,7 +116,9 @@ class _LoopClosureFields(BaseModel):
         """The settings a journal is made with (its header), in the shape journals have always had
         them: the closure geometry's as the table `geometry_params` of the keys given."""
         geometry = {GEOMETRY_PREFIX + key for key in GEOMETRY_KEYS}
-        params = self.model_dump(mode="json", exclude={"store", "keyframe_store_mb", "map", "localize", *geometry})
+        # A journal made without a fleet keeps its header (and so --map of it) whatever the fleet keys are.
+        params = self.model_dump(mode="json", exclude={"store", "keyframe_store_mb", "map", "localize", *geometry,
+                                                       *([] if self.fleet else FLEET_KEYS)})
         given = self.model_dump(mode="json", include=geometry & self.model_fields_set)
         params["geometry_params"] = {key.removeprefix(GEOMETRY_PREFIX): value for key, value in given.items()}
         return params
@@ -126,7 +133,9 @@ class _LoopClosureFields(BaseModel):
 LoopClosureConfig = create_model("LoopClosureConfig", __base__=_LoopClosureFields, __doc__=_LoopClosureFields.__doc__,
                                  **config_fields(TemplateParams), **config_fields(ConsistencyParams),
                                  **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"),
-                                 **config_fields(GeometryParams, GEOMETRY_PREFIX))
+                                 **config_fields(GeometryParams, GEOMETRY_PREFIX),
+                                 **config_fields(FleetParams, "fleet_"), **config_fields(FleetSyncParams, "fleet_"))
+FLEET_KEYS = {"fleet", *(f"fleet_{f.name}" for cls in (FleetParams, FleetSyncParams) for f in dataclasses.fields(cls))}
 
 
 def camera_of(message: CameraFrame, image: np.ndarray) -> Camera | None:
@@ -165,6 +174,8 @@ class LoopClosureService(Service):
         self.last_frame: int | None = None   # numbered across the map's sessions (services/common/layout.py)
         self.base = 0                        # the first frame number of this session
         self.journal = None
+        self.lock = threading.RLock()   # the fleet's queryables read the keyframes a frame writes
+        self.fleet = FleetMember(self, config) if config.fleet else None
         if config.store is not None:
             params = config.journal_params()
             vocabulary = getattr(self.detector.places, "vocabulary_id", None)
@@ -183,10 +194,18 @@ class LoopClosureService(Service):
 
     def setup(self) -> None:
         self.subscribe("camera/frame", self.on_frame)
+        if self.fleet is not None:
+            self.fleet.setup()
+
+    def on_idle(self) -> None:
+        if self.fleet is not None:
+            self.fleet.maybe_sync()
 
     def teardown(self) -> None:
         if self.journal is not None:
             self.journal.close()
+        if self.fleet is not None:
+            self.fleet.close()
         self.detector.close()
 
     def on_frame(self, message: CameraFrame) -> None:
@@ -198,7 +217,10 @@ class LoopClosureService(Service):
             return
         left = image_from_msg(message.left)
         right = image_from_msg(message.right) if message.right is not None else None
-        observed = self.detector.observe(frame, left, right, camera_of(message, left))
+        with self.lock:
+            observed = self.detector.observe(frame, left, right, camera_of(message, left))
+            fleet_votes = None if self.fleet is None else self.fleet.on_frame(
+                message.header, frame, observed, len(message.left.data) + (len(message.right.data) if message.right else 0))
         for closure in observed.closures:
             m = closure.measurement
             log.info("loop closure confirmed at frame %d: frame %d ↔ frame %d (place %d), %d votes, measurement %s%s", seq,
@@ -211,7 +233,7 @@ class LoopClosureService(Service):
             self.journal.append({"frame": frame, "template": match.template_id, "new": match.is_new,
                                  "distance": match.distance, "angle": match.relative_angle,
                                  "matched_frame": match.matched_frame, "shift": match.shift, "view": observed.journal_view,
-                                 "vote": _vote_record(observed.vote)})
+                                 "vote": _vote_record(observed.vote), **({"fleet": fleet_votes} if fleet_votes else {})})
         self._remember(frame, observed.match, observed.closures)
 
     def _publish(self, header, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:
@@ -243,6 +265,8 @@ class LoopClosureService(Service):
         if vote is not None:
             vote = MeasuredVote(vote["template"], vote["matched_frame"], _measurement_of(vote["measurement"]))
         closures = self.detector.replay(record["frame"], match, record["view"], vote)
+        if self.fleet is not None:
+            self.fleet.replay(record["frame"], record)
         self._remember(record["frame"], match, closures)
 
     def _remember(self, frame: int, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:
@@ -254,7 +278,8 @@ class LoopClosureService(Service):
     def extra_counters(self) -> dict[str, float]:
         counts = self.detector.counts
         return {**super().extra_counters(), "templates": len(self.detector.places), "loop_closures": counts["closures"],
-                "closure_geometry_failed": counts["geometry_failed"]}
+                "closure_geometry_failed": counts["geometry_failed"],
+                **(self.fleet.extra_counters() if self.fleet is not None else {})}
 
 
 def start_session(config: LoopClosureConfig, header: dict, keyframes: KeyframeStore) -> None:
@@ -279,13 +304,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_field_flag(parser, LoopClosureConfig, "closure")
     add_place_recognition_argument(parser)
     add_map_reuse_arguments(parser)
+    add_field_flag(parser, LoopClosureConfig, "fleet")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(LoopClosureConfig, "loopclosure", preset=args.preset, config_file=args.config,
                          overrides={"match_threshold": args.match_threshold, "store": args.store, "closure": args.closure,
                                     "place_recognition": args.place_recognition, "map": args.map,
-                                    "localize": args.localize})
+                                    "localize": args.localize, "fleet": args.fleet})
     config.geometry_parameters()   # a bad key fails at start, with one line
     config.place_params()
     if config.map is not None and config.store is None:

@@ -25,6 +25,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
+from services.common import health, topics
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies
 from services.common.errors import ConfigError, GridslamError
 from services.common.journal import SESSION, read_records
@@ -60,6 +61,7 @@ SHARDED_SPARE_BLOCKS = 1
 # reason a restart does not cure (a full disk, a bad file): the run stops and quotes it.
 RESTARTS_WITHOUT_PROGRESS = 3
 TAIL_LINES = 20             # last lines of each child's output kept in memory
+FLEET_WAIT_S = 15.0         # a fleet member at its end: how long it waits for the fleet map to hold its whole map
 LIVENESS_CHECK_S = 2.0      # while no frame completes, how often the stages' health tokens are checked
 
 
@@ -110,6 +112,10 @@ class _RunFields(BaseModel):
         None, description="Start from the map an earlier run left in this results folder (read only); this run is its next "
                           "session, and its own results folder holds the whole map.")
     localize: bool = Field(False, description="With map: localise on the saved map only, adding nothing to it.")
+    fleet: bool = Field(False, description="This robot is one of a fleet: its loop closure shares places with the other "
+                                           "robots and confirms inter-robot closures (docs/fleet.md).")
+    origin: int | None = Field(None, ge=0, description="The frame whose pose is the ground truth's origin (default: the "
+                                                       "run's first; a fleet's robots: the first robot's first frame).")
     place_recognition: Literal[PLACE_RECOGNITIONS] | None = Field(
         None, description="How loop closure recognises places: scanline, bow or sequence; default: the loopclosure's "
                           "(its preset's, or bow).")
@@ -164,7 +170,8 @@ class Supervisor:
     log_dir: Path
     children: dict[str, Child] = field(default_factory=dict)
 
-    def start(self, name: str, args: list[str]) -> Child:
+    def start(self, name: str, args: list[str], module: str = "services.cli") -> Child:
+        """Start ``python -m module args`` (the gridslam command line unless told otherwise)."""
         child = self.children.get(name) or Child(name, args, self.log_dir / f"{name}.log")
         child.args = args
         self.children[name] = child
@@ -173,7 +180,7 @@ class Supervisor:
         # a hundredfold; OpenCV's threads cost the stereo estimator 2–4 ms more CPU a frame on
         # NuBot (docs/benchmarks.md), CPU the other stages need.
         env = {**os.environ, **{name: os.environ.get(name, "1") for name in ("OPENBLAS_NUM_THREADS", "OPENCV_FOR_THREADS_NUM")}}
-        child.process = subprocess.Popen([sys.executable, "-m", "services.cli", *args], stdout=subprocess.PIPE,
+        child.process = subprocess.Popen([sys.executable, "-m", module, *args], stdout=subprocess.PIPE,
                                          stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         child.seen = False
         reader = threading.Thread(target=self._copy_output, args=(child, child.process.stdout), daemon=True,
@@ -352,7 +359,7 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
     if name == "ros2":
         args += graph_args(config)
     if name == "loopclosure":
-        args += ["--store", str(folder / TEMPLATE_LOG)]
+        args += ["--store", str(folder / TEMPLATE_LOG)] + (["--fleet"] if config.fleet else [])
         args += ["--place-recognition", config.place_recognition] if config.place_recognition else []
     if name == "expmap":
         args += ["--store", str(folder / MAP_LOG), "--out", str(folder)]
@@ -402,6 +409,8 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
 def origin_of(config: RunConfig) -> int:
     """The frame whose pose is the ground truth's origin: the run's first, or on a saved map of
     the same source the first of the run that made the map (so that its frame is the truth's)."""
+    if config.origin is not None:
+        return config.origin
     if config.map is not None:
         try:
             saved = json.loads((config.map / CONFIG).read_text())
@@ -555,6 +564,8 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
                 (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
             supervisor.start("source", source_args(config, config.start, ack_topic))
             completed = _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
+            if completed and config.fleet:
+                _wait_for_fleet_map(recorder.session, config.robot, stop_event)
             statuses = recorder.statuses()
             recording = recorder.recording
         wall_time = time.monotonic() - started
@@ -657,6 +668,22 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
         if time.monotonic() > deadline:
             raise RunError(f"services {sorted(missing)} did not come up within {STARTUP_TIMEOUT_S:.0f} s")
         time.sleep(0.1)
+
+
+def _wait_for_fleet_map(session, robot: str, stop_event: threading.Event) -> None:
+    """A fleet member at its last frame: until a live fleet map holds every experience of the
+    robot's map (it takes a part it missed from the map's snapshot, which needs the robot's expmap
+    up), at most FLEET_WAIT_S; at once when no fleet map answers (the robot never waits for one
+    that is down)."""
+    deadline = time.monotonic() + FLEET_WAIT_S
+    while not stop_event.is_set() and time.monotonic() < deadline:
+        own = [s.extra.get("experiences") for s in health.statuses(session, robot, timeout=1.0) if s.service == "expmap"]
+        fleet = [s.extra.get(f"experiences_{robot}", 0) for s in health.statuses(session, topics.FLEET, timeout=1.0)
+                 if s.service == "fleetmap"]
+        if not own or not fleet or max(fleet) >= own[0]:
+            return
+        time.sleep(0.5)
+    log.warning("the fleet map does not hold all of robot %s's map after %.0f s", robot, FLEET_WAIT_S)
 
 
 def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> bool:

@@ -23,16 +23,17 @@ import time
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from schemas import GridActivity, GridPose, MapPose, MapUpdate
+from schemas import FleetPose, GridActivity, GridPose, MapPose, MapUpdate
+from services.common import topics as gridslam_topics
 from services.common.config import load_config
 from services.common.convert import image_from_msg
 from services.common.errors import ConfigError
 from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.settings import add_flag, config_fields, params_of
+from services.common.settings import add_field_flag, add_flag, config_fields, params_of
 from services.ros import projection
-from services.ros.messages import IMAGE, MARKER_ARRAY, ODOMETRY, PATH, POSE_WITH_COVARIANCE, TF, RosMessages
+from services.ros.messages import IMAGE, MARKER_ARRAY, ODOMETRY, PATH, POSE_WITH_COVARIANCE, TF, RosMessages, yaw_quaternion
 from services.ros.rmw_zenoh import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TF_QOS, GraphParams, Qos, WireError, normalise_namespace
 
 log = logging.getLogger(__name__)
@@ -57,6 +58,8 @@ class _Ros2Fields(BaseModel):
 
     path_rate_hz: float = Field(4.0, gt=0, le=100, description="nav_msgs/Path messages of the corrected trajectory per second, at most.")
     map_rate_hz: float = Field(1.0, gt=0, le=30, description="Experience-map MarkerArrays per second, at most.")
+    fleet: bool = Field(False, description="Also publish every robot's pose in the fleet frame (gridslam/@v1/fleet/<robot>/"
+                                           "pose, once joined) as /fleet/<robot>/pose in the shared `map` frame (docs/fleet.md).")
 
 
 Ros2Config = create_model("Ros2Config", __base__=_Ros2Fields, __doc__=_Ros2Fields.__doc__, **config_fields(GraphParams))
@@ -103,6 +106,9 @@ class Ros2Service(Service):
         # A seq going backwards is a new run (the projection starts afresh).
         observe(self, {"grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose, "map/update": self.on_map_update,
                        "grid/activity": self.on_grid_activity})
+        if self.config.fleet:   # every robot's fleet pose (the fleet map's key space: gridslam/@v1/fleet/<robot>/pose)
+            self.subscribe(gridslam_topics.fleet_pose_topic("*"), self.on_fleet_pose, robot=gridslam_topics.FLEET,
+                           drop_stale=False, sparse=True)
         log.info("ros2: node %s%s in ROS domain %d (%s, %s keys): %s", self.node.namespace.rstrip("/") + "/", NODE_NAME,
                  p.ros_domain_id, p.ros_distro, p.ros2_keys, ", ".join(e.topic for e in self.node.endpoints))
 
@@ -141,6 +147,17 @@ class Ros2Service(Service):
         self.projection.map_update(message.header.seq, self._stamp(message),
                                    [(e.id, e.x, e.y, e.heading) for e in message.experiences], map_items(message)[1])
 
+    def on_fleet_pose(self, message: FleetPose) -> None:
+        """A robot's pose in the fleet frame, once joined: /fleet/<robot>/pose in the shared `map` frame."""
+        if not message.joined:
+            return
+        topic = f"/fleet/{message.header.robot}/pose"
+        if topic not in self.publishers:
+            self.publishers[topic] = self.node.publisher(topic, POSE_WITH_COVARIANCE, RELIABLE_QOS)
+        position = message.pose.position
+        self.publishers[topic].put(self.ros.pose_with_covariance(
+            self._stamp(message), projection.MAP_FRAME, (position.x, position.y, 0.0), yaw_quaternion(message.heading)))
+
     def on_grid_activity(self, message: GridActivity) -> None:
         pixels = image_from_msg(message.image)
         if pixels.ndim == 3:
@@ -178,9 +195,10 @@ def load_graph_config(model, args_or_flags: dict, config_file=None):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_graph_arguments(parser)
+    add_field_flag(parser, Ros2Config, "fleet")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
-    config = load_graph_config(Ros2Config, graph_flags(args), args.config)
+    config = load_graph_config(Ros2Config, {**graph_flags(args), "fleet": args.fleet}, args.config)
     service = Ros2Service(runtime, config, args.instance)
     return service.run()

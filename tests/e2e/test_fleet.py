@@ -1,0 +1,235 @@
+"""A fleet from the real command line (docs/fleet.md): two robots that start at different places
+on the corridor world meet and end in one frame; the fleet map killed with SIGKILL mid-run and
+restarted by the runner, catching up without fusing anything twice; two sites, each robot on a
+router of its own, cut apart for a while and joined again, losing no place."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+from services.common.journal import read_records
+from services.expmap.export import read_log
+from services.pipeline.fleet import evaluate_fleet
+from services.pipeline.runner import RunConfig
+from tests.netutil import REPO, endpoint, free_port, start, stop, wait_for
+
+
+def fleetmap_pid(out: Path) -> int | None:
+    """The fleet map process this test's run started (its journal is in `out`)."""
+    store = str(out / "fleet" / "fleet_map.log")
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                command = (entry / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"fleetmap" in command and store.encode() in command:
+                return int(entry.name)
+    return None
+
+
+def journal_inputs(out: Path) -> list[dict]:
+    path = out / "fleet" / "fleet_map.log"
+    return [r for r in read_records(path)[0][1:] if "checkpoint" not in r] if path.exists() else []
+
+
+def test_two_robots_meet_and_the_fleet_map_survives_a_kill(tmp_path):
+    out = tmp_path / "fleet"
+    run = start(["run", "--fleet", "--source", "synthetic:0", "--preset", "synthetic", "--egomotion", "passthrough",
+                 "--n-frames", "160", "--robot-start", "0", "--robot-start", "80", "--listen", endpoint(free_port()),
+                 "--out", str(out)])
+    try:
+        # Once the fleet map has taken some of both robots' maps, kill it; the runner starts it again.
+        wait_for(lambda: (out / "fleet" / "fleet_map.log").exists() and len(journal_inputs(out)) > 40
+                 or run.poll() is not None, timeout=120, period=0.5)
+        pid = fleetmap_pid(out)
+        assert pid is not None and run.poll() is None
+        os.kill(pid, signal.SIGKILL)
+        stdout, stderr = run.communicate(timeout=300)
+        code = run.returncode
+    finally:
+        if run.poll() is None:
+            stop(run)
+    assert code == 0, stderr[-2000:]
+    fleet = json.loads((out / "metrics.json").read_text())["fleet"]
+    assert fleet["joined_at"]["a"] == 0 and fleet["joined_at"]["b"] is not None
+    assert fleet["inter_robot_closures_accepted"] >= 20 and fleet["inter_robot_closures_accepted_false"] == 0
+    assert fleet["ate_m"]["b"] < 0.1 and fleet["online_error_after_join_m"]["b"]["max"] < 0.3
+    # a robot joining mid-run: placed soon after it first comes to a place the other saw
+    assert fleet["frames_to_join"]["b"] is not None and fleet["frames_to_join"]["b"] <= 20
+    assert fleet["fleetmap_restarts"] == 1   # and it resumed from its journal: every input once, below
+    # nothing fused twice: each closure, and each part of a robot's map, once in the journal
+    closures = [(r["closure"]["robot"], r["closure"]["index"]) for r in journal_inputs(out) if "closure" in r]
+    assert len(closures) == len(set(closures)) == fleet["inter_robot_closures_confirmed"]
+    experiences = [(r["map"], e[0]) for r in journal_inputs(out) if "map" in r for e in r["experiences"]]
+    assert len(experiences) == len(set(experiences))
+    for robot in ("a", "b"):
+        assert (out / "fleet" / f"{robot}.tum").stat().st_size > 0
+        assert (out / "fleet" / f"{robot}.groundtruth.tum").stat().st_size > 0
+
+
+def places_of(folder: Path) -> set[int]:
+    """The places a robot's loop closure has stored (its journal)."""
+    return {r["template"] for r in read_records(folder / "view_templates.log")[0][1:] if r.get("new")}
+
+
+def ip(*args: str) -> None:
+    subprocess.run(["ip", *args], check=True, capture_output=True, text=True)
+
+
+@pytest.fixture
+def two_sites():
+    """Namespaces joined by a veth pair, 10.232.0.1 (site A) and 10.232.0.2 (site B); yields them
+    and the link's device in B, which a test sets down to cut the sites apart."""
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip("needs root and iproute2 to make network namespaces")
+    tag = uuid.uuid4().hex[:6]
+    site_a, site_b = f"gs-fa-{tag}", f"gs-fb-{tag}"
+    try:
+        ip("netns", "add", site_a)
+        ip("netns", "add", site_b)
+    except subprocess.CalledProcessError as error:
+        pytest.skip(f"cannot make network namespaces here: {error.stderr.strip()}")
+    try:
+        ip("link", "add", f"gfa{tag}", "netns", site_a, "type", "veth", "peer", "name", f"gfb{tag}", "netns", site_b)
+        for ns, dev, address in ((site_a, f"gfa{tag}", "10.232.0.1/24"), (site_b, f"gfb{tag}", "10.232.0.2/24")):
+            ip("-n", ns, "addr", "add", address, "dev", dev)
+            ip("-n", ns, "link", "set", dev, "up")
+            ip("-n", ns, "link", "set", "lo", "up")
+        yield site_a, site_b, f"gfb{tag}"
+    finally:
+        for ns in (site_a, site_b):
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def in_ns(ns: str, args: list[str], log: Path) -> subprocess.Popen:
+    handle = open(log, "w")
+    return subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, *args], cwd=REPO, stdout=handle,
+                            stderr=subprocess.STDOUT, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+
+
+def test_two_sites_cut_apart_and_joined_again_lose_no_place_and_fuse_nothing_twice(two_sites, tmp_path):
+    site_a, site_b, link_b = two_sites
+    router_a, router_b = "tcp/10.232.0.1:7447", "tcp/10.232.0.2:7447"
+    processes = [in_ns(site_a, ["-m", "services.cli", "router", "--listen", router_a], tmp_path / "router-a.log")]
+    processes.append(in_ns(site_b, ["-m", "services.cli", "router", "--listen", router_b, "-e", router_a],
+                           tmp_path / "router-b.log"))
+    (tmp_path / "fleet").mkdir()
+    processes.append(in_ns(site_a, ["-m", "services.cli", "service", "fleetmap", "-e", router_a, "--instance", "fleetmap",
+                                    "--store", str(tmp_path / "fleet" / "fleet_map.log"), "--frame-robot", "a"],
+                           tmp_path / "fleetmap.log"))
+    members = {}
+    try:
+        time.sleep(3)
+        base = RunConfig(source="synthetic:0", preset="synthetic", egomotion="passthrough", n_frames=240, fleet=True,
+                         origin=0, mcap=False)
+        for robot, start_frame, site, router in (("a", 0, site_a, router_a), ("b", 120, site_b, router_b)):
+            folder = tmp_path / robot
+            folder.mkdir()
+            (folder / "member.json").write_text(base.model_copy(update={"robot": robot, "start": start_frame,
+                                                                        "connect": router}).model_dump_json())
+            members[robot] = in_ns(site, ["-m", "services.pipeline.fleet_member", str(folder / "member.json"),
+                                          str(folder)], tmp_path / f"member-{robot}.log")
+        # Once b's map is in the fleet map and the robots have each other's first places: cut.
+        wait_for(lambda: any(r.get("map") == "b" for r in journal_inputs(tmp_path))
+                 and (tmp_path / "a" / "view_templates.fleet.log").exists(), timeout=120, period=0.5)
+        ip("-n", site_b, "link", "set", link_b, "down")
+        before = {robot: places_of(tmp_path / robot) for robot in ("a", "b")}
+        time.sleep(10)
+        stored = {robot: places_of(tmp_path / robot) for robot in ("a", "b")}
+        ip("-n", site_b, "link", "set", link_b, "up")
+        # places were stored while the sites were apart; every one must reach the other robot
+        assert any(stored[robot] - before[robot] for robot in ("a", "b")), "no place stored while cut apart"
+        assert all(member.poll() is None for member in members.values())   # both still running to catch up
+        for robot, member in members.items():
+            assert member.wait(timeout=300) == 0, (tmp_path / f"member-{robot}.log").read_text()[-2000:]
+        # the fleet map's last catch-up (it asks every sync_period, 3 s)
+        sizes = {robot: len(read_log(tmp_path / robot / "experience_map.log").rebuild()) for robot in ("a", "b")}
+        wait_for(lambda: all(sum(len(r["experiences"]) for r in journal_inputs(tmp_path) if r.get("map") == robot)
+                             == size for robot, size in sizes.items()), timeout=30, period=0.5)
+    finally:
+        for process in [*members.values(), *reversed(processes)]:
+            if process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+                try:
+                    process.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+    inputs = journal_inputs(tmp_path)
+    # No place lost: each robot learnt, once, every place the other had stored when the sites were joined
+    # again (those stored while they were apart included), and nothing is missing before its last.
+    for robot, other in (("a", "b"), ("b", "a")):
+        learnt = [(r["robot"], r["place"]) for r in read_records(tmp_path / robot / "view_templates.fleet.log")[0][1:]]
+        places = {p for _, p in learnt}
+        assert len(learnt) == len(places) and places == set(range(len(places)))
+        assert stored[other] and stored[other] <= places
+    # The fleet map has every robot's whole map and every closure, each once.
+    for robot in ("a", "b"):
+        experiences = [e[0] for r in inputs if r.get("map") == robot for e in r["experiences"]]
+        assert experiences == list(range(len(experiences)))
+        assert len(experiences) == len(read_log(tmp_path / robot / "experience_map.log").rebuild())
+    closures = [(r["closure"]["robot"], r["closure"]["index"]) for r in inputs if "closure" in r]
+    assert len(closures) == len(set(closures)) > 0
+    votes = sum(1 for robot in ("a", "b") for r in read_records(tmp_path / robot / "view_templates.log")[0][1:]
+                if r.get("fleet"))
+    assert votes >= len(closures)
+    fleet = evaluate_fleet(tmp_path, ["a", "b"], {}, {"a": 0, "b": 0})
+    assert fleet["joined_at"]["b"] is not None and fleet["inter_robot_closures_accepted_false"] == 0
+    assert fleet["ate_m"]["b"] < 0.1
+
+
+def test_the_ros2_node_publishes_every_joined_robot_in_the_shared_map_frame(tmp_path):
+    from schemas import FleetPose, Header, Time
+    from services.common import codec, topics
+    from services.common.convert import planar_pose
+    from tests.netutil import client_session, port_open
+    from tests.ros2client import Client
+
+    port = free_port()
+    router = start(["router", "--listen", endpoint(port)])
+    node = None
+    client = session = None
+    try:
+        wait_for(lambda: port_open(port), timeout=15)
+        node = start(["service", "ros2", "--fleet", "-e", endpoint(port), "--instance", "ros2"])
+        client = Client(port, tmp_path / "msgs")
+        for robot in ("a", "b"):
+            client.subscribe(f"/fleet/{robot}/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")
+        session = client_session(port, robot=topics.FLEET)
+        time.sleep(3)   # the node's subscription and the client's discovery
+
+        def publish(robot: str, seq: int, joined: bool) -> None:
+            message = FleetPose(header=Header(seq=seq, stamp=Time.from_seconds(seq / 10), frame_id="map", robot=robot),
+                                pose=planar_pose(seq * 0.1, 1.0, 0.5), heading=0.5, experience_id=seq, joined=joined)
+            session.put(topics.key(topics.FLEET, topics.fleet_pose_topic(robot)), codec.encode(message),
+                        encoding=codec.encoding_of(message))
+
+        def heard() -> bool:
+            for seq in range(5):
+                publish("a", seq, True)
+                publish("b", seq, seq >= 3)   # b joins at its frame 3
+            time.sleep(0.3)
+            return len(client.received["/fleet/a/pose"]) >= 5 and len(client.received["/fleet/b/pose"]) >= 2
+
+        wait_for(heard, timeout=40, period=0.5)
+    finally:
+        if session is not None:
+            session.close()
+        if client is not None:
+            client.close()
+        for process in (node, router):
+            if process is not None:
+                stop(process)
+    poses_b = client.received["/fleet/b/pose"]
+    assert all(m.header.frame_id == "map" for m in client.received["/fleet/a/pose"] + poses_b)
+    assert {round(m.pose.pose.position.x, 6) for m in poses_b} <= {0.3, 0.4}   # only once joined
