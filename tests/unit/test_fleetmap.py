@@ -129,7 +129,7 @@ def test_a_far_off_closure_refused_after_the_join_leaves_the_map_as_it_was():
 def test_a_span_longer_than_the_look_alikes_keeps_them_from_joining(two):
     _, truth_a, truth_b = two
     fleet = FleetMap(FleetParams(frame_robot="a", join_span=8.0))
-    for name, (truth, e, links) in (("a", robot(0)), ("b", robot(40))):
+    for name, (_, e, links) in (("a", robot(0)), ("b", robot(40))):
         fleet.add_map(name, e, links)
     for k in range(8):   # eight closures over 3.5 m of each map
         fleet.add_closure(closure(k, 30 + k, truth_b, 10 + k, truth_a, claimed=(0.0, 0.0, 0.0)))
