@@ -23,19 +23,20 @@ frame's view template id, and a confirmed loop closure when there is one:
   - `ratslam`: RatSLAM's graph relaxation (optimizers.Relaxation); every closure is accepted.
 
 A frame's cost does not grow with the map under `gtsam`: experiences are found by dictionaries,
-links are appended, the solver's update touches what a closure affects, and the published poses
-are refreshed for what the solver re-eliminated plus a fixed number of others per frame
-(optimizers.REFRESH_PER_FRAME), so every experience is refreshed within a bounded number of
-frames. `final_poses()` gives every experience's best estimate (for exports).
+links are appended, the solver holds only the experiences closures join (optimizers.PoseGraph)
+and its update touches what a closure affects, and the published poses are refreshed for what
+the solver re-eliminated plus a fixed number of others per solve (optimizers.REFRESH_PER_SOLVE),
+so every experience is refreshed within a bounded number of solves. `final_poses()` gives every
+experience's best estimate (for exports).
 
 Everything is deterministic: the same inputs in the same order give the same map, which is
 what lets a restarted service rebuild its map by replaying the log of its inputs. `rebase()`
 is part of those inputs: it returns the map's whole state as arrays (`state()`) and rebuilds the
-optimiser from it (gtsam: a fresh iSAM2 given every factor in one update, at the current
-linearisation point), so a map restored from that state (`ExperienceMap.restore`) goes on
-exactly, bit for bit, as the rebased one. iSAM2's incremental state itself cannot be saved, and
-a batch solve differs from it by up to a millimetre; rebasing the live map at the same point
-makes the restored map the same map (services/expmap/store.py writes such checkpoints).
+optimiser from it (gtsam: a fresh iSAM2 given every factor, at the current estimate), so a map
+restored from that state (`ExperienceMap.restore`) goes on exactly, bit for bit, as the rebased
+one. iSAM2's incremental state itself cannot be saved, and a fresh solve differs from it by up
+to about a centimetre; rebasing the live map at the same point makes the restored map the same
+map (services/expmap/store.py writes such checkpoints).
 """
 
 from __future__ import annotations
