@@ -21,7 +21,8 @@ For each size N, in a fresh process (so that its resident memory is its own):
 
 The JSON (`--json`) is a list of objects with the keys size, match_ms_p50, match_ms_p99,
 map_ms_p50, map_ms_p99 (every timed frame), closure_ms_p50 (the median of the timed frames that
-carry a closure), rss_mib, restart_ms_p50 (journal_ms_p50 of it reading the journal),
+carry a closure), rss_mib, junctions (the experiences in the solver, optimizers.PoseGraph),
+restart_ms_p50 (journal_ms_p50 of it reading the journal),
 tail_frames, build_s (the map built with its checkpoints), replay_s (with `--replay`).
 `--restart-only` skips templates and timed frames.
 
@@ -106,7 +107,8 @@ def measure(size: int, frames: int, build_every: int, burst: int, seed: int, pla
     return {"size": size, "place_recognition": place_recognition, **matching,
             "map_ms_p50": float(np.median(map_ms)), "map_ms_p99": float(np.percentile(map_ms, 99)),
             "closure_ms_p50": float(np.median(closure_ms)) if closure_ms else None, "rss_mib": rss_mib(),
-            "experiences": len(experience_map), "closures_accepted": experience_map.closures["accepted"]}
+            "experiences": len(experience_map), "closures_accepted": experience_map.closures["accepted"],
+            "junctions": len(experience_map.state()["junctions"])}
 
 
 def measure_restart(steps: list, params, restarts: int, whole: bool) -> dict:

@@ -104,7 +104,6 @@ class PoseGraph:
         self._chain_covariance = np.zeros((capacity, 3, 3))
         self._carry = np.zeros((capacity, 3, 3))
         self._junctions: list[int] = []                  # sorted
-        self._below: dict[int, set[int]] = {}             # junction → the junctions whose chains start at it
         self._open: tuple[int, int] | None = None         # (upper junction, first experience) of the open chain
         self._tip = (0.0, 0.0, 0.0)                       # its newest experience's pose in that junction's frame
         self._chain_factor: dict[int, int | None] = {}    # junction → its chain factor's index in the solver (None: pending)
@@ -141,7 +140,7 @@ class PoseGraph:
         self._grow(index + 1)
         if index == 0:
             self._prior = tuple(pose)
-            self._bottom[0], self._junctions, self._below = 0, [0], {0: set()}
+            self._bottom[0], self._junctions = 0, [0]
             self._values.insert(0, self.gtsam.Pose2(*pose))
             self._factors.append((-1, self._prior_factor()))
 
@@ -225,7 +224,6 @@ class PoseGraph:
         pose = self._poses_of(np.array([key]))[0] if pose is None else pose
         position = bisect.bisect_right(self._junctions, key)
         self._junctions.insert(position, key)
-        self._below[key] = set()
         if position + 1 < len(self._junctions):   # inside the chain of the next junction
             bottom = self._junctions[position + 1]
             top, first = int(self._top[bottom]), int(self._first[bottom])
@@ -248,10 +246,7 @@ class PoseGraph:
         a link's noise ε_k (right-hand, in k's frame) moves the junction by Ad(d_k) ε_k,
         d_k = Z⁻¹ c_k, so the factor's covariance is Σ_Z = Σ_k Ad(d_k) Σ_k Ad(d_k)ᵀ (for a single
         link, its own)."""
-        if self._top[junction] >= 0:
-            self._below[int(self._top[junction])].discard(junction)
         self._top[junction], self._first[junction] = top, first
-        self._below[top].add(junction)
         pose = _chain_poses(self._step[first:junction + 1])
         carry = _adjoint(_between(pose[-1:], pose))
         accumulated = (carry @ self._step_covariance[first:junction + 1] @ carry.transpose(0, 2, 1)).sum(axis=0)
@@ -287,14 +282,10 @@ class PoseGraph:
         """Relinearise the factors of the chains (of more than one link) at these junctions whose
         junctions moved relative to each other by more than RELINEARIZE_THRESHOLD (in any tangent
         component) since the factor was linearised, as iSAM2 relinearises a variable; how many."""
-        chains = set()
-        for junction in marked:
-            chains.update(below for below in self._below.get(junction, ()) if self._first[below] < below)
-            if junction and self._first[junction] < junction:
-                chains.add(junction)
-        if not chains:
+        chains = self._chains_of(marked)
+        chains = chains[self._first[chains] < chains]
+        if not len(chains):
             return 0
-        chains = np.array(sorted(chains), dtype=np.int64)
         junctions = np.unique(np.concatenate([chains, self._top[chains]]))
         estimate = self._junction_poses(junctions)
         relative = _between(estimate[np.searchsorted(junctions, self._top[chains])], estimate[np.searchsorted(junctions, chains)])
@@ -449,7 +440,6 @@ class PoseGraph:
         self._step[targets] = np.asarray(state["link_transforms"], dtype=float).reshape(-1, 3)[odometric]
         self._step_covariance[targets] = covariances[odometric]
         self._junctions = junctions.tolist()
-        self._below = {key: set() for key in self._junctions}
         self._bottom[junctions] = junctions
         junction = self._bottom[:count] >= 0
         # A chain's first experience is made from a junction; the others each from the one before.
@@ -520,7 +510,7 @@ class PoseGraph:
         window = np.arange(self._cursor, self._cursor + min(REFRESH_PER_SOLVE, count)) % count
         self._cursor = (self._cursor + REFRESH_PER_SOLVE) % count
         # The current experience too: the experiences made until the next solve are composed from it.
-        keys = np.unique(np.concatenate([self._chains_at(sorted(self._refresh)), window, [self.map.current]]))
+        keys = np.unique(np.concatenate([self._chains_at(self._refresh), window, [self.map.current]]))
         self._refresh.clear()
         poses = self.map._poses
         estimates = self._poses_of(keys)
@@ -528,15 +518,23 @@ class PoseGraph:
         poses[keys] = estimates
         return moved.tolist()
 
-    def _chains_at(self, junctions: list[int]) -> np.ndarray:
+    def _chains_of(self, junctions) -> np.ndarray:
+        """The chains (by their lower junctions, ascending) that end at these junctions or start
+        at them."""
+        marked = np.fromiter(junctions, dtype=np.int64)
+        every = np.array(self._junctions[1:], dtype=np.int64)
+        return every[np.isin(every, marked) | np.isin(self._top[every], marked)]
+
+    def _chains_at(self, junctions) -> np.ndarray:
         """The experiences whose estimates follow these junctions': each, its chain and the chains
         that start at it."""
-        count, pieces = len(self.map), [np.zeros(0, dtype=np.int64)]
-        for junction in junctions:
-            pieces.append(np.arange(self._first[junction], junction + 1))
-            pieces.extend(np.arange(self._first[below], below) for below in self._below[junction])
-            if self._open is not None and self._open[0] == junction:
-                pieces.append(np.arange(self._open[1], count))
+        chains = self._chains_of(junctions)
+        first = self._first[chains]
+        lengths = chains - first + 1
+        pieces = [np.fromiter(junctions, dtype=np.int64),
+                  np.repeat(first - np.cumsum(lengths) + lengths, lengths) + np.arange(lengths.sum())]
+        if self._open is not None and self._open[0] in junctions:
+            pieces.append(np.arange(self._open[1], len(self.map)))
         return np.concatenate(pieces)
 
     def estimate(self) -> np.ndarray:

@@ -539,6 +539,23 @@ def test_an_unusable_checkpoint_is_named_in_a_warning_and_the_whole_journal_repl
     same_state(restored, live)
 
 
+@pytest.mark.parametrize("closure", ["metric", "ratslam"])
+def test_a_map_restored_from_its_state_goes_on_bit_for_bit_as_the_rebased_one(closure):
+    # Rebased while the robot is between closures (frame 150: the open chain holds the newest
+    # experiences) and while lap 2's closures come (frame 130); with RatSLAM's snaps the chains
+    # branch where the robot snapped to.
+    _, steps = two_laps_with_a_look_alike()
+    params = MapParams(new_experience_distance=0.6, closure=closure)
+    for split in (130, 150):
+        live = ExperienceMap(params)
+        for step in steps[:split]:
+            step.apply(live)
+        restored = ExperienceMap.restore(params, {key: value.copy() for key, value in live.rebase().items()})
+        for step in steps[split:]:
+            assert step.apply(restored).moved == step.apply(live).moved
+        same_state(restored, live)
+
+
 def test_checkpoints_come_at_the_same_frames_in_two_runs_so_their_journals_are_the_same(tmp_path):
     # Decided on the map's own work (solver updates), not on time.
     _, steps = two_laps_with_a_look_alike()
