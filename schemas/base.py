@@ -51,7 +51,8 @@ class Time(Model):
 class Header(Model):
     """std_msgs/Header plus the frame index and the robot, carried by every message."""
 
-    seq: int = Field(ge=0, description="Index of the camera frame this message derives from; consecutive frames differ by one, so gaps are detectable.")
+    seq: int = Field(ge=0, description="Index of the camera frame this message derives from; consecutive frames of a stream differ by `stride`, so gaps are detectable.")
+    stride: int = Field(1, ge=1, description="How far seq advances from one frame of the stream to the next: 1, or n for a replay that takes every n-th frame of its source (a jump of n is then no gap).")
     stamp: Time = Field(description="Timestamp of the source frame (not of publication).")
     frame_id: str = Field("", description="Coordinate frame the data is expressed in, e.g. 'camera', 'odom', 'map'.")
     robot: str = Field("robot0", description="Robot name; the same as the <robot> chunk of the key expression.")

@@ -8,7 +8,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
-from schemas.base import Header, Image, Message, Model, PlanarIncrement, Pose, Twist, PlanarCovariance, covariance_field
+from schemas.base import Header, Image, Message, Model, PlanarIncrement, Point, Pose, Twist, PlanarCovariance, covariance_field
 
 
 class CameraInfo(Model):
@@ -134,6 +134,9 @@ class MapPose(Message):
     pose: Pose = Field(description="Corrected pose in the map frame.")
     heading: float = Field(description="Corrected heading, radians, counter-clockwise from x.")
     experience_id: int = Field(ge=0, description="Experience the robot is at.")
+    localized: bool = Field(
+        True, description="The pose is in the map's frame. False while a localisation on a saved map is not placed yet (or "
+                          "lost), and while a later session of a map is not joined to it: the pose is then the odometry's.")
 
 
 class Experience(Model):
@@ -179,6 +182,19 @@ class MapSnapshot(Message):
     links: list[Link] = Field(description="Every link.")
 
 
+class MapRoute(Message):
+    """`map/route`: the shortest path over the experience map between the experiences nearest two
+    points (reply of the queryable, and published for the viewer); nav_msgs/Path's layout."""
+
+    header: Header = Field(description="Last frame applied to the map when the route was planned; frame_id 'map'.")
+    start: Point = Field(description="The point asked to start from, map frame (z 0).")
+    goal: Point = Field(description="The point asked to go to, map frame (z 0).")
+    experiences: list[int] = Field(description="The experiences of the route, in order.")
+    poses: list[Pose] = Field(description="Their poses in the map frame, in order.")
+    length: float = Field(ge=0, description="The route's length over the links' lengths, m.")
+    found: bool = Field(description="False when the two experiences are in parts of the map no link joins.")
+
+
 class ServiceStatus(Message):
     """`status/<service>/<instance>`: counters of a running service, published periodically and on query."""
 
@@ -206,5 +222,5 @@ class ServiceStatus(Message):
 
 MESSAGES: tuple[type[Message], ...] = (
     CameraFrame, EgoMotion, GridPose, GridActivity, ViewTemplate, LoopClosure,
-    MapPose, MapUpdate, MapSnapshot, ServiceStatus,
+    MapPose, MapUpdate, MapSnapshot, MapRoute, ServiceStatus,
 )

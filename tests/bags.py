@@ -10,13 +10,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.common.geometry import planar_from_camera
+
 FORMATS = ("ros1", "sqlite3", "mcap")
 LEFT, RIGHT, ODOM = "/stereo/left/image_raw", "/stereo/right/image_raw", "/robot/odom"
-
-
-def planar_from_camera(pose: np.ndarray) -> tuple[float, float, float]:
-    """(x forward, y left, yaw) of a camera-convention 4×4 pose (x right, y down, z forward)."""
-    return float(pose[2, 3]), float(-pose[0, 3]), math.atan2(-pose[0, 2], pose[2, 2])
 
 
 def write_bag(path: Path, frames, *, fmt: str = "mcap", stereo: bool = True, compression: str | None = None,

@@ -6,7 +6,7 @@ import numpy as np
 
 from schemas import (
     CameraFrame, CameraInfo, EgoMotion, Experience, GridActivity, GridPose, Header, Link, LoopClosure, MapPose,
-    MapSnapshot, MapUpdate, PlanarIncrement, ServiceStatus, Time, ViewTemplate,
+    MapRoute, MapSnapshot, MapUpdate, PlanarIncrement, Point, ServiceStatus, Time, ViewTemplate,
 )
 from schemas.base import Message
 from services.common.convert import image_to_msg, planar_pose
@@ -37,6 +37,8 @@ def sample_messages(seq: int = 7) -> list[Message]:
         MapPose(header=header(seq, "map"), pose=planar_pose(2.9, -1.1, 0.9), heading=0.9, experience_id=1),
         MapUpdate(header=header(seq, "map"), experiences=experiences, links=links, experience_count=2, link_count=1),
         MapSnapshot(header=header(seq, "map"), experiences=experiences, links=links),
+        MapRoute(header=header(seq, "map"), start=Point(x=0.1, y=0.0), goal=Point(x=1.4, y=-0.4), experiences=[0, 1],
+                 poses=[planar_pose(0.0, 0.0, 0.0), planar_pose(1.5, -0.5, 0.3)], length=1.58, found=True),
         ServiceStatus(header=header(seq), service="gridcells", instance="host-1", state="running", received=10,
                       published=10, decode_errors=1, gaps=0, stale=0, uptime=3.5),
     ]

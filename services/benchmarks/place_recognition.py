@@ -20,7 +20,6 @@ paper's consistency rule and the closure geometry) observes every frame, and the
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
@@ -31,6 +30,7 @@ import numpy as np
 
 from services.common.config import load_config
 from services.common.errors import ConfigError
+from services.common.settings import CommandParser
 from services.evaluation.revisits import from_poses, read_ground_truth
 from services.loopclosure.detector import MemoryKeyframes
 from services.loopclosure.places import PLACE_RECOGNITIONS
@@ -126,7 +126,7 @@ def plot(path: Path, rows: list[dict], title: str) -> Path | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench place-recognition", description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog="gridslam bench place-recognition", description=__doc__.split("\n\n")[0])
     parser.add_argument("--source", required=True, help="a source spec, e.g. images:../shared/data/rtabmap_samples/images")
     parser.add_argument("--ground-truth", required=True, metavar="GT",
                         help="a revisit mask image (N×N), a poses file (TUM or KITTI, with --radius), frame ranges "

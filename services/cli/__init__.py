@@ -6,22 +6,32 @@ Each command module exposes ``register(subparsers)`` and ``run(args) -> int``. K
 
 from __future__ import annotations
 
-import argparse
 import importlib
+import importlib.metadata
 import logging
 import sys
 
 from services.common.errors import GridslamError
+from services.common.settings import CommandParser, renamed_flags
 
 # Command modules under services/cli/, in the order `gridslam --help` lists them.
 COMMANDS: tuple[str, ...] = ("demo", "run", "router", "service", "echo", "health", "schemas", "bench", "integrate", "simulate", "calibrate", "odometry", "map", "world", "export", "vocabulary")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+def version() -> str:
+    """The installed gridslam's version (pyproject.toml's, as installed)."""
+    try:
+        return importlib.metadata.version("gridslam")
+    except importlib.metadata.PackageNotFoundError:   # run from a checkout that was never installed
+        return "unknown (not installed)"
+
+
+def build_parser():
+    parser = CommandParser(
         prog="gridslam",
         description="Bio-inspired visual odometry and SLAM over Zenoh: grid-cell path integration and RatSLAM mapping.",
     )
+    parser.add_argument("--version", action="version", version=f"gridslam {version()}")
     verbosity = parser.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="only errors")
@@ -39,6 +49,8 @@ def configure_logging(verbose: int, quiet: bool) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     configure_logging(args.verbose, args.quiet)
+    for note in renamed_flags(args):
+        logging.getLogger("gridslam").warning("%s", note)
     try:
         return int(args.func(args) or 0)
     except GridslamError as error:

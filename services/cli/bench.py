@@ -13,11 +13,13 @@ BENCHMARKS: dict[str, str] = {
     "viewer": "services.viewer.bench",
     "pipeline": "services.pipeline.bench",
     "sharding": "services.pipeline.shard_bench",
-    "load": "services.pipeline.load",
+    "load": "services.pipeline.load_bench",
     "loopclosure": "services.loopclosure.bench",
     "mapping": "services.expmap.bench",
     "geometry": "services.loopclosure.geometry_bench",
     "place-recognition": "services.benchmarks.place_recognition",
+    "ros2": "services.ros.bench",
+    "foxglove": "services.ros.foxglove_bench",
 }
 
 

@@ -21,7 +21,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from services.ros.mcap_export import export_mcap
+    from services.pipeline.results_mcap import export_mcap
 
     path, counts = export_mcap(args.folder, args.out, args.images)
     for topic, number in sorted(counts.items()):

@@ -6,8 +6,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.common.settings import add_renamed_flag
 from services.evaluation.results import format_table
-from services.gridcells.motion_io import FORMATS
+from services.evaluation.motion_io import FORMATS
 
 DECODERS = ("paper", "fft", "subpixel", "calibrated")  # = integrator.DECODER_NAMES (a test checks), kept literal: scipy loads only when a command runs
 
@@ -36,7 +37,8 @@ def add_network_flags(parser: argparse.ArgumentParser) -> None:
                         help="Gaussian rotation noise per frame, standard deviation in degrees")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the noise (and of the simulated walk)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
-    parser.add_argument("--step", choices=("odometry", "lattice"), default="odometry",
+    add_renamed_flag(parser, "--step", "--step-source", dest="step", choices=("odometry", "lattice"))
+    parser.add_argument("--step-source", dest="step", choices=("odometry", "lattice"), default="odometry",
                         help="step length from the input (default; paper eq. 5) or from the calibrated lattice flow "
                              "(needs --decoder calibrated)")
     parser.add_argument("--modules", type=int, default=1, metavar="N",

@@ -5,10 +5,12 @@
 - `map build`: view templates, loop closures and the experience map over an image folder and
   a motion file, in one process (the evidence of docs/mapping.md).
 - `map sweep`: `map build` over several match thresholds and tolerances, as a Markdown table.
+- `map route --map DIR --from X,Y --to X,Y`: the shortest route over a saved map (route.py).
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 from pathlib import Path
 
@@ -24,6 +26,17 @@ from services.loopclosure.service import add_place_recognition_argument
 def register(subparsers) -> None:
     parser = subparsers.add_parser("map", help="export a persisted experience map; build one offline from images and odometry")
     commands = parser.add_subparsers(dest="map_command", metavar="SUBCOMMAND", required=True)
+
+    route = commands.add_parser("route", help="the shortest route over a saved map's experiences between two points")
+    route.add_argument("--map", type=Path, required=True, metavar="DIR", help="a results folder holding a map")
+    route.add_argument("--from", dest="start", required=True, metavar="X,Y", type=point, help="start, map frame, m")
+    route.add_argument("--to", dest="goal", required=True, metavar="X,Y", type=point, help="goal, map frame, m")
+    route.add_argument("--out", type=Path, metavar="FILE",
+                       help="write the route as TUM to FILE and as nav_msgs/Path to FILE with .mcap (extra `ros`)")
+    route.add_argument("--reference", type=Path, metavar="TUM",
+                       help="ground truth of the map's frames (groundtruth.tum of the run that made it): the route's "
+                            "length through the true places of its experiences")
+    route.set_defaults(func=run_route)
 
     export = commands.add_parser("export", help="rebuild a map from its log; write the graph (JSON) and the corrected trajectory (TUM)")
     export.add_argument("store", type=Path, help="the map log (experience_map.log of a run)")
@@ -76,6 +89,61 @@ def _config(model, section: str, args, overrides=None):
     return load_config(model, section, preset=args.preset, config_file=args.config, overrides=overrides)
 
 
+def point(text: str) -> tuple[float, float]:
+    """X,Y in metres (--from, --to)."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in metres, got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise argparse.ArgumentTypeError(f"expected finite X,Y, got {text!r}")
+    return x, y
+
+
+def run_route(args) -> int:
+    from services.common.layout import MAP_LOG
+    from services.evaluation.trajectory import Trajectory, read_tum, write_tum
+    from services.expmap.export import read_log
+    from services.expmap.route import shortest_route
+
+    map_log = read_log(args.map / MAP_LOG)
+    experience_map = map_log.rebuild()
+    route = shortest_route(experience_map.final_poses(), experience_map.links, args.start, args.goal)
+    first, last = (route.experiences[0], route.experiences[-1]) if route.experiences else (None, None)
+    print(format_table([("from experience", f"{first} ({args.start[0]:g}, {args.start[1]:g})", ""),
+                        ("to experience", f"{last} ({args.goal[0]:g}, {args.goal[1]:g})", ""),
+                        ("found", route.found, ""), ("experiences on the route", len(route.experiences), ""),
+                        ("length", route.length, "m")]))
+    if not route.found:
+        raise ConfigError(f"{args.map}: no route: experiences {first} and {last} are in parts of the map no link joins")
+    if args.reference is not None:
+        true = true_places(map_log, experience_map, route.experiences, read_tum(args.reference))
+        print(f"through the true places of its experiences (--reference): {np.hypot(*np.diff(true, axis=0).T).sum():.1f} m; "
+              f"start and goal {np.hypot(*(true[-1] - true[0])):.1f} m apart")
+    if args.out is not None:
+        from services.ros.mcap_export import write_route_mcap
+
+        poses = route.poses
+        write_tum(args.out, Trajectory.from_planar(np.arange(len(poses), dtype=float), poses[:, 0], poses[:, 1], poses[:, 2]))
+        print(f"route: {args.out}")
+        mcap = args.out.with_suffix(".mcap")
+        write_route_mcap(mcap, poses)
+        print(f"route: {mcap}")
+    return 0
+
+
+def true_places(map_log, experience_map, experiences: list[int], reference) -> np.ndarray:
+    """The true positions (N, 2) of experiences: where the reference puts the frames that made
+    them (frames paired by stamp)."""
+    stamp_of = {step.frame: round(step.stamp, 6) for step in map_log.steps}
+    at_stamp = {round(stamp, 6): position[:2] for stamp, position in zip(reference.stamps, reference.positions)}
+    missing = [e for e in experiences if stamp_of.get(experience_map.created[e]) not in at_stamp]
+    if missing:
+        raise ConfigError(f"the reference has no pose at the frame of experience {missing[0]} (frame "
+                          f"{experience_map.created[missing[0]]}): give the ground truth of the run that made the map")
+    return np.array([at_stamp[stamp_of[experience_map.created[e]]] for e in experiences])
+
+
 def run_export(args) -> int:
     from services.evaluation.trajectory import read_tum
     from services.evaluation.plots import plot_trajectories
@@ -89,6 +157,8 @@ def run_export(args) -> int:
     summary = result.summary()
     print(format_table([("frames", summary["frames"], ""), ("experiences", summary["experiences"], ""),
                         ("links", summary["links"], ""), ("loop-closure links", summary["loop_closure_links"], ""),
+                        ("sessions", summary["sessions"], ""),
+                        ("parts of the graph", summary["parts"], "1: one connected map; more: sessions not joined"),
                         ("torn last record skipped", summary["torn_last_record"], "")]))
     if args.reference is not None:
         errors = errors_against(result.map_log, result.experience_map, read_tum(args.reference))
@@ -109,7 +179,7 @@ def run_export(args) -> int:
 
 def _inputs(args):
     """Images, odometry and the three services' parameters of a build or sweep."""
-    from services.expmap.evidence import odometry_from_motion
+    from services.expmap.offline import odometry_from_motion
     from services.expmap.service import ExpMapConfig
     from services.gridcells.config import GridCellsConfig
     from services.gridcells.integrator import auto_velocity_scale
@@ -146,7 +216,7 @@ def _inputs(args):
 
 
 def run_build(args) -> int:
-    from services.expmap.evidence import build_map, write_build
+    from services.expmap.offline import build_map, write_build
 
     images, odometry, reference, loopclosure, expmap, config = _inputs(args)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -178,7 +248,7 @@ def run_build(args) -> int:
 
 
 def run_sweep(args) -> int:
-    from services.expmap.evidence import sweep
+    from services.expmap.offline import sweep
 
     try:
         thresholds = [float(v) for v in args.thresholds.split(",") if v.strip()]

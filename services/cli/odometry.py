@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.common.settings import add_renamed_flag
 from services.egomotion import ESTIMATORS
 from services.egomotion.offline import run_offline, summary_rows
 from services.evaluation.results import format_table
@@ -39,7 +40,8 @@ def register(subparsers) -> None:
     parser.add_argument("--calibration", type=Path, metavar="FILE", help="camera calibration file (docs/sources.md)")
     parser.add_argument("--start", type=int, default=0, help="first frame (default 0)")
     parser.add_argument("--stop", type=int, help="frame to stop before (default: the end)")
-    parser.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
+    parser.add_argument("--stride", dest="step", type=int, default=1, metavar="N", help="use every N-th frame (default 1)")
+    add_renamed_flag(parser, "--step", "--stride", dest="step", type=int)
     parser.add_argument("--n-frames", type=int, metavar="N", help="process at most N frames")
     parser.add_argument("--reference", type=Path, metavar="FILE",
                         help="reference to score against, row k = frame k: TUM, KITTI poses, or a CSV of increments "

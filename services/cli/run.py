@@ -4,75 +4,192 @@ from __future__ import annotations
 
 import argparse
 import sys
+import textwrap
 import time
 from pathlib import Path
 
-from services.common.config import load_config
+from services.common.config import has_named_preset, load_config, preset_services, preset_values, presets
+from services.common.layout import add_map_reuse_arguments
 from services.common.runtime import DEFAULT_ROUTER
+from services.common.settings import note_renamed
 from services.expmap.service import add_map_arguments
 from services.loopclosure.service import add_place_recognition_argument
+from services.ros.node import add_graph_arguments, graph_flags
+from services.source.calibration import OPTIONAL_KEYS, REQUIRED_KEYS
 from services.source.service import add_fov_argument
 from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
 
 
+HELP_WIDTH = 100   # --help's closing text is wrapped here (argparse keeps its lines as they are)
+ESTIMATOR_NEEDS = ("stereo needs a stereo pair and its calibration (baseline); mono needs camera intrinsics (for "
+                   "an image folder, video or camera without a calibration a pinhole of --fov degrees is assumed); "
+                   "passthrough needs odometry or ground truth in the frames (the synthetic world, a ROS bag's "
+                   "--odom-topic); scanline needs nothing")
+
+
+def preset_estimators() -> dict[str, str | None]:
+    """Every shipped preset (of any service) → the estimator its egomotion table names (None:
+    it has none, the default applies)."""
+    names = sorted({name for service in preset_services() for name in presets(service)})
+    return {name: preset_values("egomotion", name).get("estimator") if has_named_preset("egomotion", name) else None
+            for name in names}
+
+
+def describe_presets() -> str:
+    """The shipped presets and, for each, its estimator or which services it covers."""
+    parts = []
+    for name, estimator in preset_estimators().items():
+        covers = [service for service in preset_services() if has_named_preset(service, name)]
+        parts.append(f"{name} ({estimator})" if estimator else f"{name} ({', '.join(covers)} only)")
+    return ", ".join(parts)
+
+
+def run_epilog(command: str) -> str:
+    """--help's closing text: the defaults that depend on the input, the calibration file's keys,
+    the presets, examples and the renamed flags."""
+    if command == "demo":
+        examples = ["gridslam demo", "gridslam demo --view", "gridslam demo --source synthetic:1 --out results/seed1",
+                    "gridslam demo --preset campus --n-frames 2000 --foxglove"]
+    else:
+        examples = ["gridslam run --source stereo:../shared/data/nubot_scene1 --preset nubot",
+                    "gridslam run --source kitti:../shared/data/kitti06_clip --preset kitti --n-frames 200",
+                    "gridslam run --source images:../shared/data/rtabmap_samples/images --fov 65",
+                    "gridslam run --source video:stlucia.avi --preset stlucia --stride 2",
+                    "gridslam run --source synthetic:0 --preset campus --view",
+                    "gridslam run --source rosbag:BAG --image-topic /cam/image_raw --odom-topic /odom --egomotion passthrough",
+                    "gridslam run --source stereo:../shared/data/nubot_scene1 --preset nubot --egomotion-instances 2",
+                    "gridslam run --source synthetic:0 --preset synthetic --map results/earlier --localize"]
+    paragraphs = [
+        "estimator: when --egomotion names none, the preset's, else scanline; " + ESTIMATOR_NEEDS + ".",
+        f"presets: {describe_presets()}; or a preset file (a base preset and per-service tables, docs/sources.md).",
+        f"calibration file (--calibration FILE, TOML): {', '.join(REQUIRED_KEYS)} in pixels (required); "
+        f"{', '.join(OPTIONAL_KEYS)} (optional: baseline in metres for a stereo pair, 0 or absent: monocular; "
+        "width and height are checked against the images).",
+        "settings come from defaults < --preset < --config FILE ([run] and one table per service) < GRIDSLAM_<SECTION>_<KEY> "
+        "environment variables < flags.",
+        "renamed flags (the old spellings still work, with a note): --step N is --stride N; "
+        "--step odometry|lattice is --step-source odometry|lattice.",
+    ]
+    return "\n".join([*(textwrap.fill(text, HELP_WIDTH, subsequent_indent="  ") for text in paragraphs), "", "examples:",
+                      *(f"  {line}" for line in examples)])
+
+
 def add_run_arguments(parser, *, source_required: bool) -> None:
-    parser.add_argument("--source", required=source_required,
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
-    parser.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"], help="ego-motion estimator")
-    parser.add_argument("--egomotion-instances", type=int, metavar="N",
-                        help="ego-motion processes sharing the frames (default 1; docs/pipeline.md)")
-    parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default calibrated)")
-    parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
-    parser.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
-    parser.add_argument("--preset", help="dataset preset: synthetic, campus, nubot, kitti, stlucia, or a preset file "
-                                         "(base preset and per-service tables, docs/sources.md)")
-    parser.add_argument("--calibration", type=Path, help="calibration TOML file for the source")
-    add_fov_argument(parser)
-    parser.add_argument("--camera-height", type=float, metavar="M",
-                        help="camera height above the ground, m: a metric scale for the mono estimator (ground plane)")
-    parser.add_argument("-c", "--config", type=Path, help="gridslam TOML config file for every service")
-    parser.add_argument("--out", type=Path, help="results folder (default results/<timestamp>/ with a latest link)")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace an earlier run in --out (a folder that holds one is refused otherwise)")
-    parser.add_argument("--n-frames", type=int, help="process only this many frames")
-    parser.add_argument("--start", type=int, help="first frame index")
-    parser.add_argument("--step", type=step_value, action="append", metavar="N|odometry|lattice",
-                        help="a number: take every N-th frame; odometry or lattice: where the grid cells' step length "
-                             "comes from (default odometry); may be given twice")
-    parser.add_argument("-l", "--listen", help=f"the run's router endpoint (default {DEFAULT_ROUTER})")
-    parser.add_argument("-e", "--connect", metavar="ENDPOINT",
-                        help="use the router at ENDPOINT instead of starting one (e.g. several robots on one network)")
-    parser.add_argument("--robot", help="robot name (default robot0)")
-    parser.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
-                        help="skip loop closure and the experience map")
-    add_map_arguments(parser)
-    add_place_recognition_argument(parser)
-    parser.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
-                        help="also serve the live viewer (default 127.0.0.1:8080)")
-    add_world_arguments(parser)
-    parser.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
-                        help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (default 8765; extra `foxglove`)")
-    parser.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
-                        help="do not write run.mcap (nor keep the camera images for it)")
-    add_bag_arguments(parser)
+    """The flags of `gridslam run` and `demo`, in groups (their defaults: None, "not given")."""
+    given = parser.add_argument_group("input")
+    given.add_argument("--source", required=source_required, metavar="SPEC",
+                       help="kitti:PATH, stereo:PATH (NuBot layout), images:PATH, video:FILE, camera:N, synthetic:SEED, "
+                            "rosbag:PATH or ros2:TOPIC" + ("" if source_required else " (default synthetic:0)"))
+    given.add_argument("--preset", metavar="NAME|FILE",
+                       help="dataset preset for every service that has one (list below), or a preset file"
+                            + ("" if source_required else " (default synthetic)"))
+    given.add_argument("--calibration", type=Path, metavar="FILE",
+                       help="calibration TOML file for the source (keys below; default: the dataset's own, or the preset's)")
+    add_fov_argument(given)
+    given.add_argument("--camera-height", type=float, metavar="M",
+                       help="camera height above the ground, m: a metric scale for the mono estimator (ground plane)")
+    given.add_argument("-c", "--config", type=Path, metavar="FILE",
+                       help="gridslam TOML config file: [run] and one table per service, over the preset")
+    given.add_argument("--start", type=int, metavar="K", help="first frame index (default 0)")
+    given.add_argument("--n-frames", type=int, metavar="N", help="process only this many frames (default: all)")
+    given.add_argument("--stride", type=int, metavar="N", help="take every N-th frame (default 1)")
+    given.add_argument("--step", type=old_step_value, action=OldStep, help=argparse.SUPPRESS)
+
+    stages = parser.add_argument_group("stages")
+    stages.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"],
+                        help="ego-motion estimator (default: the preset's, else scanline; what each needs: below)")
+    stages.add_argument("--egomotion-instances", type=int, metavar="N",
+                        help="ego-motion processes sharing the frames (default 1, frame after frame; more run the "
+                             "estimator in blocks, with the same results whatever their number; docs/pipeline.md)")
+    stages.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
+    stages.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"],
+                        help="lattice flow decoder (default calibrated)")
+    stages.add_argument("--step-source", choices=["odometry", "lattice"],
+                        help="where the grid cells take their step length from: the ego-motion (odometry, default) or "
+                             "the calibrated lattice flow (lattice)")
+    stages.add_argument("--modules", type=int, metavar="N", help="grid modules (default 1; more need --decoder calibrated)")
+    stages.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
+    stages.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
+                        help="skip loop closure and the experience map (default: both run)")
+
+    mapping = parser.add_argument_group("mapping")
+    add_map_arguments(mapping)
+    recognition = parser.add_argument_group("place recognition")
+    add_place_recognition_argument(recognition)
+    reuse = parser.add_argument_group("map reuse")
+    add_map_reuse_arguments(reuse)
+
+    outputs = parser.add_argument_group("outputs")
+    outputs.add_argument("--out", type=Path, metavar="DIR", help="results folder (default results/<timestamp>/ with a latest link)")
+    outputs.add_argument("--overwrite", action="store_true",
+                         help="replace an earlier run in --out (a folder that holds one is refused otherwise)")
+    outputs.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
+                         help="do not write run.mcap (default: written, with the camera images; extra `ros`)")
+    outputs.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
+                         help="also serve the live viewer (127.0.0.1:8080 when no address is given); a run that ends by "
+                              "itself is served on until Ctrl-C")
+    outputs.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
+                         help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (8765 when no port is given; extra "
+                              "`foxglove`); a run that ends by itself is served on until Ctrl-C")
+
+    network = parser.add_argument_group("network")
+    network.add_argument("-l", "--listen", metavar="ENDPOINT", help=f"the run's router endpoint (default {DEFAULT_ROUTER})")
+    network.add_argument("-e", "--connect", metavar="ENDPOINT",
+                         help="use the router at ENDPOINT instead of starting one (e.g. several robots on one network)")
+    network.add_argument("--robot", metavar="NAME", help="robot name, the <robot> chunk of every key (default robot0)")
+
+    ros2 = parser.add_argument_group("ROS 2", textwrap.fill("the run as a node of a ROS 2 graph over Zenoh "
+                                                            "(docs/ecosystem.md); the graph settings also apply to a "
+                                                            "ros2: source", HELP_WIDTH - 4))
+    ros2.add_argument("--ros2", action="store_true", default=None,
+                      help="also run the ros2 service: the run as the node gridslam (rmw_zenoh)")
+    add_graph_arguments(ros2)
+
+    bag = parser.add_argument_group("ROS bag", "topics of --source rosbag:PATH (and ros2:TOPIC)")
+    add_bag_arguments(bag)
+
+    world = parser.add_argument_group("synthetic world", textwrap.fill("settings of --source synthetic:SEED, over the "
+                                                                       "preset's and the config file's [source] keys",
+                                                                       HELP_WIDTH - 4))
+    add_world_arguments(world)
 
 
-def step_value(text: str) -> int | str:
-    """`--step`: a frame stride (a positive integer) or the grid cells' step source."""
+class OldStep(argparse.Action):
+    """`--step`, once both the frame stride and the grid cells' step source: a number is read as
+    --stride, odometry or lattice as --step-source (noted as renamed). The same meaning given
+    twice with different values is refused: with one flag for two things that was easy to miss."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        dest, new = ("step_source", "--step-source") if isinstance(value, str) else ("stride", "--stride")
+        seen = getattr(namespace, "_old_step", {})
+        if dest in seen and seen[dest] != value:
+            parser.error(f"--step {seen[dest]} and --step {value}: give {new} once")
+        namespace._old_step = {**seen, dest: value}
+        setattr(namespace, dest, value)
+        note_renamed(namespace, f"--step {value}", f"{new} {value}")
+
+
+def old_step_value(text: str) -> int | str:
+    """`--step` (the old spelling): a frame stride (a positive integer) or the grid cells' step source."""
     if text in ("odometry", "lattice"):
         return text
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, odometry or lattice, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected a positive integer (--stride) or odometry or lattice (--step-source), "
+                                         f"got {text!r}") from None
     if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, odometry or lattice, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a positive integer (--stride), got {text!r}")
     return value
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("run", help="run the whole stack on a dataset, camera or the synthetic world")
+    parser = subparsers.add_parser("run", help="run the whole stack on a dataset, camera or the synthetic world",
+                                   description=textwrap.fill(
+                                       "Run the whole stack (source, egomotion, gridcells, loopclosure, expmap) as local "
+                                       "processes around a Zenoh router, evaluate what it published and write a results "
+                                       "folder (docs/pipeline.md).", HELP_WIDTH),
+                                   epilog=run_epilog("run"), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_run_arguments(parser, source_required=True)
     parser.set_defaults(func=run)
 
@@ -105,20 +222,23 @@ class Progress:
             self.stream.write("\n")
 
 
+# RunConfig fields whose flag is not --FIELD-NAME (a bad value names the flag).
+RUN_FLAGS = {"step": "--stride", "config_file": "--config", "mapping": "--no-mapping", "mcap": "--no-mcap",
+             "world": "--world"}
+
+
 def run_flags(args) -> dict:
-    """The RunConfig fields the flags set (None: not given). `--step` given a number is the
-    frame stride, given odometry or lattice the grid cells' step source."""
-    steps = args.step or []
-    strides = [value for value in steps if isinstance(value, int)]
-    sources = [value for value in steps if isinstance(value, str)]
+    """The RunConfig fields the flags set (None: not given)."""
     return {"source": args.source, "egomotion": args.egomotion, "egomotion_instances": args.egomotion_instances,
-            "integrator": args.integrator, "decoder": args.decoder, "step_source": sources[-1] if sources else None,
+            "integrator": args.integrator, "decoder": args.decoder, "step_source": args.step_source,
             "modules": args.modules, "heading": args.heading,
-            "preset": args.preset, "calibration": args.calibration, "fov": args.fov, "camera_height": args.camera_height, "config_file": args.config, "n_frames": args.n_frames,
-            "start": args.start, "step": strides[-1] if strides else None, "listen": args.listen, "connect": args.connect,
+            "preset": args.preset, "calibration": args.calibration, "fov": args.fov, "camera_height": args.camera_height,
+            "config_file": args.config, "n_frames": args.n_frames, "start": args.start, "step": args.stride,
+            "listen": args.listen, "connect": args.connect,
             "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,
-            "map_optimizer": args.map_optimizer, "place_recognition": args.place_recognition, "world": parse_world_flags(args.world, args.laps) or None,
-            "mcap": args.mcap, "foxglove": args.foxglove, **bag_settings(args)}
+            "map_optimizer": args.map_optimizer, "place_recognition": args.place_recognition,
+            "map": args.map, "localize": args.localize, "world": parse_world_flags(args.world, args.laps) or None,
+            "mcap": args.mcap, "foxglove": args.foxglove, "ros2": args.ros2, **graph_flags(args), **bag_settings(args)}
 
 
 def execute(args, **defaults) -> int:
@@ -127,15 +247,24 @@ def execute(args, **defaults) -> int:
     from services.pipeline.report import summary_rows
     from services.pipeline.runner import RunConfig, run_pipeline
 
-    config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args))
+    config = load_config(RunConfig, "run", defaults=defaults, config_file=args.config, overrides=run_flags(args),
+                         flags=RUN_FLAGS)
     progress = Progress()
     try:
-        result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite,
+        result = run_pipeline(config, args.out, progress=progress, overwrite=args.overwrite, serve=True,
                               announce=lambda line: print(line, file=sys.stderr, flush=True))
     finally:
         progress.close()
-    print(format_table(summary_rows(result.metrics)))
-    print(f"results: {result.folder}")
+    try:
+        print(format_table(summary_rows(result.metrics)))
+        print(f"results: {result.folder}")
+        if result.serving is not None:   # --view, --foxglove: time to connect to the finished run
+            addresses = ", ".join(f"{name} {address}" for name, address in result.serving.addresses.items())
+            print(f"the run has finished; serving it until Ctrl-C: {addresses}", flush=True)
+            result.serving.wait()
+    finally:
+        if result.serving is not None:
+            result.serving.close()
     return 0
 
 

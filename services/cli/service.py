@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 
 from services.common.runtime import add_runtime_flags, runtime_from_args
+from services.common.settings import CommandParser, renamed_flags
 
 # Service name → adapter module; each exposes add_arguments(parser) and main(runtime, args) -> int.
 # Modules are imported only for the service being started, which keeps `gridslam` itself light.
@@ -18,6 +20,7 @@ SERVICES: dict[str, str] = {
     "expmap": "services.expmap.service",
     "viewer": "services.viewer.service",
     "foxglove": "services.ros.foxglove",
+    "ros2": "services.ros.node",
 }
 
 
@@ -32,7 +35,7 @@ def register(subparsers) -> None:
 def service_parser(name: str):
     """The parser of one service's flags: the shared runtime flags plus its own; and its main()."""
     module = importlib.import_module(SERVICES[name])
-    parser = argparse.ArgumentParser(prog=f"gridslam service {name}", description=module.__doc__.strip().splitlines()[0])
+    parser = CommandParser(prog=f"gridslam service {name}", description=module.__doc__.strip().splitlines()[0])
     add_runtime_flags(parser)
     parser.add_argument("--instance", help="instance name in the health key (default host-pid)")
     module.add_arguments(parser)
@@ -45,4 +48,6 @@ def run(args) -> int:
     # them: it comes from --preset, else GRIDSLAM_<SERVICE>_PRESET (containers).
     parser.set_defaults(preset=os.environ.get(f"GRIDSLAM_{args.name.upper()}_PRESET"))
     service_args = parser.parse_args(args.service_args)
+    for note in renamed_flags(service_args):
+        logging.getLogger("gridslam").warning("%s", note)
     return service_main(runtime_from_args(service_args), service_args)

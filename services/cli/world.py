@@ -1,6 +1,6 @@
 """`gridslam world`: describe a synthetic world: its layout, route, revisits and look-alike places.
 
-The revisits come from the ground truth (services/source/synthetic.py, ``revisits``): each is a
+The revisits come from the ground truth (services/source/world/revisits.py): each is a
 stretch of frames that passes a place the route passed before, in the same or the opposite
 direction; a look-alike pass is one through a copy of a place seen elsewhere (campus layout).
 """
@@ -31,7 +31,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from services.source.synthetic import SyntheticWorld, revisits
+    from services.source.synthetic import SyntheticWorld
+    from services.source.world.revisits import revisits
 
     world = open_source(args.source, preset=args.preset, mono=True, world=parse_world_flags(args.world, args.laps))
     if not isinstance(world, SyntheticWorld):
@@ -70,7 +71,7 @@ def run(args) -> int:
         print(f"wrote {args.json}")
     if args.plot:
         from services.evaluation.plots import plot_layout
-        from services.source import campus
+        from services.source.world import campus
 
         regions = {}
         if world.layout is not None:
@@ -83,16 +84,13 @@ def run(args) -> int:
     return 0
 
 
-TRUE_CLOSURE_M = 2.0   # a closure between places farther apart than this (ground truth) is false
-
-
 def score_closures(world, found: list, path: Path) -> list[str]:
     """Lines scoring a run's loop_closures.csv on this world: confirmed, accepted, rejected and
-    unmeasured closures, true and false by the ground truth (the two frames within 2 m), and for
+    unmeasured closures, true and false by the ground truth (the two frames within TRUE_CLOSURE_M), and for
     each kind of revisit longer than 20 m how many got at least one accepted closure."""
     import csv
 
-    import numpy as np
+    from services.evaluation.revisits import same_place
 
     try:
         with open(path, newline="") as handle:
@@ -108,7 +106,7 @@ def score_closures(world, found: list, path: Path) -> list[str]:
         if max(frame, matched) >= len(poses):
             raise ConfigError(f"{path}: frame {max(frame, matched)} is beyond this world's {len(poses)} frames")
         fate = "accepted" if row["accepted"] == "true" else "unmeasured" if row.get("measurement") == "none" else "rejected"
-        true = float(np.linalg.norm(poses[frame, :2] - poses[matched, :2])) <= TRUE_CLOSURE_M
+        true = same_place(poses[frame, :2], poses[matched, :2])
         fates.setdefault(fate, []).append((frame, matched, true))
     lines = ["| closures | count | true | false |", "|---|---:|---:|---:|",
              f"| confirmed | {len(rows)} | {sum(t for v in fates.values() for *_, t in v)} | "

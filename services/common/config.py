@@ -163,11 +163,15 @@ def load_config(
     config_file: Path | None = None,
     overrides: Mapping[str, Any] | None = None,
     environ: Mapping[str, str] | None = None,
+    flags: Mapping[str, str] | None = None,
 ) -> ModelT:
     """Build `model` for `section` from defaults < preset < config file < environment < overrides
-    (flags). Overrides whose value is None are ignored, so argparse defaults of None mean "not given"."""
+    (flags). Overrides whose value is None are ignored, so argparse defaults of None mean "not given".
+    A bad value is a ConfigError naming where it came from: the flag (`flags` maps a field to
+    its flag where that is not --FIELD-NAME), the environment variable, or the file and key."""
     values: dict[str, Any] = dict(defaults or {})
     sources: list[str] = []
+    given: dict[str, str] = {}   # field → the flag or environment variable that gave it
     if preset:
         values.update(preset_values(section, preset))
         sources.append(f"preset file {preset}" if is_preset_file(preset) else f"preset {preset!r}")
@@ -177,12 +181,20 @@ def load_config(
             raise ConfigError(f"{config_file}: [{section}] must be a table")
         values.update(table)
         sources.append(str(config_file))
-    values.update(env_values(section, model, environ))
-    values.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    from_environment = env_values(section, model, environ)
+    values.update(from_environment)
+    given.update({name: f"{ENV_PREFIX}{section}_{name}".upper() for name in from_environment})
+    from_flags = {k: v for k, v in (overrides or {}).items() if v is not None}
+    values.update(from_flags)
+    given.update({name: (flags or {}).get(name, "--" + name.replace("_", "-")) for name in from_flags})
     try:
         return model.model_validate(values)
     except ValidationError as error:
         first = error.errors()[0]
         where = ".".join(str(part) for part in first["loc"]) or section
+        name = str(first["loc"][0]) if first["loc"] else None
+        if name in given:
+            got = f", got {first['input']!r}" if "input" in first and not isinstance(first["input"], dict) else ""
+            raise ConfigError(f"{given[name]}: {first['msg']}{got} ([{section}] {name})") from None
         origin = f" (from {', '.join(sources)})" if sources else ""
         raise ConfigError(f"[{section}] {where}: {first['msg']}{origin}") from None

@@ -109,3 +109,42 @@ def read_records(path: Path) -> tuple[list[dict], int, bool]:
     if torn:
         log.warning("%s: torn last record skipped (a crash while writing)", path)
     return records, good, torn
+
+
+SESSION = "session"   # a journal record {"session": k, "localize": ..., "map": ...}: the records after it are session k's
+
+
+def sessions(records: list[dict]) -> list[dict]:
+    """The session records of a journal's records (header excluded)."""
+    return [record for record in records if SESSION in record]
+
+
+def continue_session(source: Path, target: Path, header: dict, localize: bool, origin: Path) -> dict:
+    """Start the journal ``target`` as a copy of the journal ``source`` (a saved map's, in the
+    results folder ``origin``) followed by the record that starts its next session, and return
+    that record. The source is only read, and checked first — its header must be ``header`` (the
+    same kind of journal, written with the same parameters) and every record intact (a torn last
+    one is left out, with a warning)."""
+    source, target = Path(source), Path(target)
+    records, good, _ = read_records(source)
+    if not records or records[0].get("format") != header.get("format"):
+        raise JournalError(f"{source}: not a {header.get('format', 'gridslam')} journal")
+    if records[0] != header:
+        differing = sorted(key for key in {**records[0].get("params", {}), **header.get("params", {})}
+                           if records[0].get("params", {}).get(key) != header.get("params", {}).get(key))
+        what = f"other parameters ({', '.join(differing)})" if differing else "another version or vocabulary"
+        raise JournalError(f"{source}: the map was made with {what} than this run's; run with the settings "
+                           "(preset, config) it was made with")
+    record = {SESSION: 1 + len(sessions(records[1:])), "localize": bool(localize), "map": str(origin)}
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with open(source, "rb") as handle:
+            intact = handle.read(good)
+        with open(target, "wb") as handle:
+            handle.write(intact)
+            handle.write(_line(record).encode())
+            handle.flush()
+            os.fsync(handle.fileno())
+    except OSError as error:
+        raise JournalError(f"{target}: cannot write ({error.strerror or error})") from None
+    return record

@@ -4,6 +4,7 @@ session built from it (STYLE.md: zenoh-python examples' common flags, built once
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import logging
 import threading
@@ -35,6 +36,16 @@ class RuntimeConfig(BaseModel):
     robot: str = Field("robot0", pattern=r"^[A-Za-z0-9_\-]+$", description="Robot name, the <robot> chunk of every key.")
     zenoh_config: Path | None = Field(None, description="A Zenoh JSON5 config file applied first (TLS, access control).")
     cfg: dict[str, str] = Field(default_factory=dict, description="Raw Zenoh settings KEY: JSON5 VALUE, applied last.")
+
+
+def is_loopback(host: str) -> bool:
+    """Whether a host name or address is this machine's loopback (a server bound there is not reachable from outside)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def add_runtime_flags(parser: argparse.ArgumentParser) -> None:

@@ -11,7 +11,6 @@ with its key, counted and dropped. SIGTERM/SIGINT stop the loop; the session is 
 
 from __future__ import annotations
 
-import collections
 import logging
 import os
 import queue
@@ -21,15 +20,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import timedelta
 from typing import ClassVar
 
 import zenoh
+import zenoh.ext
 
 from schemas import Header, ServiceStatus, Time
 from schemas.base import Message
 from services.common import codec, topics
 from services.common.errors import ConfigError, GridslamError, PersistenceError
+from services.common.recovery import OutputMemory, RouterLink
 from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
+from services.common.sequencing import Delivery, Sequencer, SequencerParams
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +40,21 @@ INBOX_SIZE = 16          # samples waiting for the main thread; beyond this, pub
 REPLAY_FRAMES = 64       # frames whose outputs are kept to answer a re-sent input again
 STATUS_PERIOD_S = 1.0    # how often the status message is published
 LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors, gaps, rejections
-# After the link to the router came back, a frame that skips ahead of the last one handled waits
-# this long for the ones before it (lost with the router, sent again by the source), so that
-# frames are still handled in order. A gap that is real (a skipped file, a live camera's drops)
-# ends the wait.
+# Samples lost on the way (with a router that died, or with a lease that expired) are recovered
+# by Zenoh's advanced publisher and subscriber (docs/reliability.md): each publisher of a pipeline
+# topic numbers its samples and keeps its last CACHE_SAMPLES; a subscriber that sees a number
+# missing holds what follows, asks the publisher's cache for the missing ones and delivers the
+# publisher's samples in their order. Every RECOVERY_QUERY_S it also asks for any it has not had
+# (the publisher's heartbeat cannot tell it: Zenoh ignores heartbeats on a key with a verbatim
+# chunk such as @v1), so that the last samples lost are recovered with nothing after them.
+CACHE_SAMPLES = 64
+RECOVERY_QUERY_S = 0.5
+# camera/frame is not recovered so (the source watches its matching status, which an advanced
+# publisher does not offer, and re-sends its frames in flight itself, services/source/replay.py):
+# after the link to the router came back, a frame of it that skips ahead of the last one handled
+# waits this long for the ones before it (lost with the router, sent again by the source), so
+# that frames are still handled in order. A gap that is real (a skipped file, a live camera's
+# drops) ends the wait.
 RECOVERY_S = 5.0
 MAX_HELD = 256           # frames waiting per subscription, beyond which the wait ends early
 # A message that names the one it follows (EgoMotion.previous_seq: several egomotion instances
@@ -67,21 +81,6 @@ class Counters:
 
 
 @dataclass
-class SeqTracker:
-    """Detects gaps and stale (duplicate or out-of-order) `seq` numbers on one subscription."""
-
-    last: int | None = None
-
-    def check(self, seq: int) -> tuple[int, bool]:
-        """(frames missing before `seq`, whether `seq` is stale)."""
-        if self.last is not None and seq <= self.last:
-            return 0, True
-        missing = 0 if self.last is None else seq - self.last - 1
-        self.last = seq
-        return missing, False
-
-
-@dataclass
 class Subscription:
     topic: str
     model: type[Message]
@@ -89,18 +88,48 @@ class Subscription:
     newest_only: bool
     drop_stale: bool
     sparse: bool
-    seq: SeqTracker = field(default_factory=SeqTracker)
+    stream: int = 0                                          # its stream in the service's Sequencer
     pending: tuple[str, bytes, str] | None = None   # newest_only: the one sample kept
     lock: threading.Lock = field(default_factory=threading.Lock)
-    held: dict[int, tuple[str, Message]] = field(default_factory=dict)   # waiting: seq → (key, message)
     follows: Callable[[Message], int | None] | None = None   # the seq a message comes after (None: none)
     on_stale: Callable[[Message], None] | None = None       # called for a stale message instead of the replay
-    held_since: float | None = None                          # when the wait for a `follows` link began
 
     @property
     def ordered(self) -> bool:
-        """Every frame is expected, in order (not a sparse, newest-only or replay-accepting topic)."""
-        return self.drop_stale and not self.sparse
+        """Every frame is expected, in order (not a sparse, newest-only or replay-accepting topic),
+        and one lost on the way is sent again by its sender, not recovered by Zenoh: after a
+        reconnection, frames that skip ahead wait for it."""
+        return self.drop_stale and not self.sparse and not recovers(self.topic)
+
+
+def recovers(topic: str) -> bool:
+    """Whether samples of `topic` lost on the way are recovered by Zenoh's advanced publisher and
+    subscriber (CACHE_SAMPLES): the pipeline's topics but camera/frame."""
+    return topic in topics.TOPICS and topic != "camera/frame"
+
+
+def declare_publisher(session: zenoh.Session, robot: str, topic: str):
+    """The publisher of `topic` for `robot`: congestion control BLOCK (offline replay loses
+    nothing), reliable; where `recovers(topic)`, numbered and cached, so that a subscriber that
+    missed a sample asks for it again."""
+    key, encoding = topics.key(robot, topic), zenoh.Encoding(codec.encoding_of(topics.model_of(topic)))
+    if recovers(topic):
+        return zenoh.ext.declare_advanced_publisher(
+            session, key, encoding=encoding, congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE, cache=zenoh.ext.CacheConfig(CACHE_SAMPLES),
+            sample_miss_detection=zenoh.ext.MissDetectionConfig())
+    return session.declare_publisher(key, encoding=encoding, congestion_control=zenoh.CongestionControl.BLOCK,
+                                     reliability=zenoh.Reliability.RELIABLE)
+
+
+def declare_subscriber(session: zenoh.Session, key: str, on_sample: Callable[[zenoh.Sample], None], recovered: bool):
+    """A subscriber of `key`; if `recovered`, one that asks the publishers' caches for the
+    samples it missed and delivers each publisher's samples in their order."""
+    if not recovered:
+        return session.declare_subscriber(key, on_sample)
+    return zenoh.ext.declare_advanced_subscriber(
+        session, key, on_sample,
+        recovery=zenoh.ext.RecoveryConfig(periodic_queries=timedelta(seconds=RECOVERY_QUERY_S)))
 
 
 class Service:
@@ -132,11 +161,10 @@ class Service:
         self._entities: list = []
         self._last_status = 0.0
         self._current_seq: int | None = None
-        self._outputs: collections.OrderedDict[int, list[tuple[str, Message]]] = collections.OrderedDict()
-        self._routers: set[str] = set()   # routers this session has a link to (Zenoh threads write it)
-        self._link_lost = False           # the last one closed
-        self._link_back = False           # ... and one opened again since
-        self._recovering_until: float | None = None   # frames after a gap wait until then
+        self._outputs = OutputMemory(REPLAY_FRAMES)   # to answer a re-sent input frame again
+        self._link = RouterLink()                     # Zenoh's threads write it
+        self._order = Sequencer(SequencerParams(order_wait=ORDER_WAIT_S, order_wait_first=ORDER_WAIT_FIRST_S,
+                                                recovery=RECOVERY_S, max_held=MAX_HELD), name=self.name)
         self._gap_events = 0
         self._busy_s = 0.0   # CPU time of this thread in handlers and on_idle: the service's own work
         self._cpu_when_serving: float | None = None   # the process's CPU time when it began serving
@@ -170,10 +198,12 @@ class Service:
         the last seq a previous process of this service handled (it resumed from a checkpoint):
         messages up to it are stale."""
         assert self.session is not None, "subscribe() belongs in setup()"
-        subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale, sparse or newest_only,
-                                    follows=follows, on_stale=on_stale)
-        subscription.seq.last = handled_up_to
         index = len(self._subscriptions)
+        subscription = Subscription(topic, topics.model_of(topic), handler, newest_only, drop_stale, sparse or newest_only,
+                                    stream=index, follows=follows, on_stale=on_stale)
+        stream = self._order.stream(topic, ordered=subscription.ordered, follows=follows is not None,
+                                    handled_up_to=handled_up_to)
+        assert stream == index
         self._subscriptions.append(subscription)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -188,13 +218,17 @@ class Service:
             else:
                 self.counters.dropped_newest_only += 1
 
-        self._entities.append(self.session.declare_subscriber(topics.key(self.robot, topic), on_sample))
+        # An observer's or a newest-only subscription wants no old samples: nothing is asked for again.
+        recovered = recovers(topic) and not (newest_only or self.observer)
+        self._entities.append(declare_subscriber(self.session, topics.key(self.robot, topic), on_sample, recovered))
 
-    def queryable(self, topic: str, answer: Callable[[], Message]) -> None:
-        """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only)."""
+    def queryable(self, topic: str, answer: Callable[..., Message], parameters: bool = False) -> None:
+        """Answer queries on `topic` with `answer()` (called on a Zenoh thread: keep it read-only);
+        with `parameters`, `answer(get)`, `get(name)` giving the selector's parameter or None. An
+        answer that raises a GridslamError replies with its one line as an error."""
         assert self.session is not None, "queryable() belongs in setup()"
         key = topics.key(self.robot, topic)
-        self._entities.append(self.session.declare_queryable(key, lambda query: self._reply(query, key, answer)))
+        self._entities.append(self.session.declare_queryable(key, lambda query: self._reply(query, key, answer, parameters)))
 
     def publish(self, topic: str, message: Message) -> None:
         """Publish a pipeline message on `topic` (congestion control BLOCK: offline replay loses nothing).
@@ -211,9 +245,7 @@ class Service:
     def remember_output(self, seq: int, topic: str, message: Message) -> None:
         """Publish `message` on `topic` again when input frame `seq` arrives again (`publish` does
         this for what a handler publishes; a service restored from disk, for its last frame)."""
-        self._outputs.setdefault(seq, []).append((topic, message))
-        while len(self._outputs) > REPLAY_FRAMES:
-            self._outputs.popitem(last=False)
+        self._outputs.remember(seq, topic, message)
 
     def _send(self, topic: str, message: Message) -> None:
         self.publisher(topic).put(codec.encode(message))
@@ -222,10 +254,7 @@ class Service:
         """The publisher of `topic`, declared on first use."""
         publisher = self._publishers.get(topic)
         if publisher is None:
-            publisher = self._publishers[topic] = self.session.declare_publisher(
-                topics.key(self.robot, topic), encoding=zenoh.Encoding(codec.encoding_of(topics.model_of(topic))),
-                congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE,
-            )
+            publisher = self._publishers[topic] = declare_publisher(self.session, self.robot, topic)
         return publisher
 
     def header(self, seq: int, stamp: Time | float, frame_id: str = "") -> Header:
@@ -285,7 +314,7 @@ class Service:
 
     def replay_outputs(self, seq: int) -> int:
         """Publish again what the handler published for frame `seq`, if still remembered; how many."""
-        outputs = self._outputs.get(seq, ())
+        outputs = self._outputs.of(seq)
         for topic, output in outputs:
             self._send(topic, output)
         self.counters.replayed += len(outputs)
@@ -316,43 +345,20 @@ class Service:
     def _on_transport_event(self, event) -> None:   # a Zenoh thread
         if event.transport.whatami != zenoh.WhatAmI.ROUTER:
             return
-        zid = str(event.transport.zid)
         if event.kind == zenoh.SampleKind.DELETE:
-            self._routers.discard(zid)
-            self._link_lost = self._link_lost or not self._routers
+            self._link.closed(str(event.transport.zid))
         else:
-            self._routers.add(zid)
-            self._link_back = self._link_lost
-
-    def _replay_after_reconnection(self) -> None:
-        """Publish the outputs of the last REPLAY_FRAMES frames again, in frame order, before anything new.
-
-        Outputs still queued when the link closed (the router restarted, or this process was
-        stopped beyond its lease and the router dropped it) are lost, and the frames handled
-        after the link is back would get through first: downstream would see a gap, then count
-        the lost frames, re-sent later, as stale, and lose them. Replayed first, they arrive in
-        order; what downstream already has is stale to it and costs nothing (issue 7)."""
-        self._link_lost = self._link_back = False
-        count = 0
-        for outputs in list(self._outputs.values()):
-            for topic, output in outputs:
-                self._send(topic, output)
-                count += 1
-        self.counters.replayed += count
-        log.warning("%s: the link to the router was lost and is back; %d recent output(s) published again",
-                    self.name, count)
+            self._link.opened(str(event.transport.zid))
 
     def _serve_once(self) -> None:
-        if self._link_lost:
-            if not self._link_back:
-                # No router: what this service would publish now is lost, so its inbox waits.
-                self._stop.wait(max(self.idle_timeout, 0.01))
-                return
-            self._replay_after_reconnection()
-            self._recovering_until = time.monotonic() + RECOVERY_S
-        if self._recovering_until is not None and time.monotonic() > self._recovering_until:
-            self._end_recovery()
-        self._end_overdue_waits()
+        if self._link.down:
+            # No router: what this service would publish now is lost, so its inbox waits.
+            self._stop.wait(max(self.idle_timeout, 0.01))
+            return
+        if self._link.back():   # camera/frame's frames lost with the router come again: those after them wait
+            self._order.reconnected(time.monotonic())
+        for delivery in self._order.due(time.monotonic()):
+            self._deliver(delivery)
         try:
             index, item = self._inbox.get(timeout=self.idle_timeout) if self.idle_timeout > 0 else self._inbox.get_nowait()
         except queue.Empty:
@@ -367,6 +373,7 @@ class Service:
         self._handle(subscription, *item)
 
     def _handle(self, subscription: Subscription, key: str, payload: bytes, encoding: str) -> None:
+        """Decode a sample, put it in order (services/common/sequencing.py), and handle what is due."""
         try:
             message = codec.decode(payload, subscription.model, encoding)
         except codec.CodecError as error:
@@ -375,84 +382,18 @@ class Service:
                 log.warning("%s: dropped message on %s (%d so far): %s", self.name, key, self.counters.decode_errors, error)
             return
         self.counters.received += 1
-        seq = message.header.seq
-        last = subscription.seq.last
-        if subscription.follows is not None:
-            if self._wait_for_previous(subscription, key, message):
-                return
-        elif self._recovering_until is not None and subscription.ordered and last is not None and seq > last + 1:
-            # Frames lost with the router come again after this one: it waits for them.
-            if not subscription.held:
-                log.warning("%s: seq %d follows %d on %s after a reconnection; waiting up to %.0f s for the frames between",
-                            self.name, seq, last, key, RECOVERY_S)
-            if seq in subscription.held:
-                self.counters.stale += 1   # it came twice while waiting: once is enough
-                return
-            subscription.held[seq] = (key, message)
-            if len(subscription.held) > MAX_HELD:
-                self._end_recovery()
-            return
-        self._deliver(subscription, key, message)
-        self._release(subscription)
+        previous = subscription.follows(message) if subscription.follows is not None else None
+        for delivery in self._order.offer(subscription.stream, message.header.seq, previous, (key, message),
+                                          time.monotonic(), key, message.header.stride):
+            self._deliver(delivery)
 
-    def _wait_for_previous(self, subscription: Subscription, key: str, message: Message) -> bool:
-        """Hold `message` when the one it follows has not been handled yet; whether it was held."""
-        seq, last = message.header.seq, subscription.seq.last
-        if self._follows_on(subscription, message) or (last is not None and seq <= last):
-            return False
-        if seq in subscription.held:
+    def _deliver(self, delivery: Delivery) -> None:
+        """Call the handler on a message in order (stale: replay the outputs instead; a gap: count it)."""
+        subscription = self._subscriptions[delivery.stream]
+        (key, message), seq, missing, stale = delivery.item, delivery.seq, delivery.missing, delivery.stale
+        if delivery.duplicate:
             self.counters.stale += 1   # it came twice while waiting: once is enough
-            return True
-        if not subscription.held:
-            subscription.held_since = time.monotonic()
-        subscription.held[seq] = (key, message)
-        if len(subscription.held) > MAX_HELD:
-            self._stop_waiting(subscription, f"more than {MAX_HELD} messages wait")
-        return True
-
-    @staticmethod
-    def _follows_on(subscription: Subscription, message: Message) -> bool:
-        """Whether `message` may be handled now: the frame it comes after has been."""
-        last = subscription.seq.last
-        if subscription.follows is None:
-            return last is None or message.header.seq <= last + 1
-        previous = subscription.follows(message)
-        return previous is None or (last is not None and previous <= last)
-
-    def _end_overdue_waits(self) -> None:
-        now = time.monotonic()
-        for subscription in self._subscriptions:
-            if subscription.held_since is None:
-                continue
-            limit = ORDER_WAIT_S if subscription.seq.last is not None else ORDER_WAIT_FIRST_S
-            if now - subscription.held_since > limit:
-                self._stop_waiting(subscription, f"waited {limit:.0f} s")
-
-    def _stop_waiting(self, subscription: Subscription, reason: str) -> None:
-        seq, _ = min(subscription.held.items())
-        previous = subscription.follows(subscription.held[seq][1])
-        log.warning("%s: %s on %s for seq %s, which seq %d follows; handling the %d held message(s) with a gap",
-                    self.name, reason, subscription.topic, previous, seq, len(subscription.held))
-        self._release(subscription, everything=True)
-
-    def _release(self, subscription: Subscription, everything: bool = False) -> None:
-        """Handle the held frames that now follow on (all of them, in order, when `everything`)."""
-        while subscription.held:
-            seq = min(subscription.held)
-            if not everything and not self._follows_on(subscription, subscription.held[seq][1]):
-                return
-            self._deliver(subscription, *subscription.held.pop(seq))
-        subscription.held_since = None
-
-    def _end_recovery(self) -> None:
-        self._recovering_until = None
-        for subscription in self._subscriptions:
-            self._release(subscription, everything=True)
-
-    def _deliver(self, subscription: Subscription, key: str, message: Message) -> None:
-        """Check `seq` (stale: replay the outputs; a gap: count it) and call the handler."""
-        seq = message.header.seq
-        missing, stale = subscription.seq.check(seq)
+            return
         handler = subscription.handler
         if stale and subscription.drop_stale:
             self.counters.stale += 1
@@ -483,8 +424,8 @@ class Service:
                 log.warning("%s: rejected seq %d on %s (%d so far): %s", self.name, seq, key, self.counters.rejected, error)
         except Exception:
             # Not a known rejection: a case the core did not foresee (a numerical corner of OpenCV
-            # on a valid but absurd frame, say). One message must not take the service down
-            # (issue 7): the traceback goes to the log, the count to the status, and the next
+            # on a valid but absurd frame, say). One message must not take the service down:
+            # the traceback goes to the log, the count to the status, and the next
             # message is served; the frame shows downstream as a gap.
             self.counters.handler_errors += 1
             if self.counters.handler_errors <= 10 or self.counters.handler_errors % LOG_EVERY == 0:
@@ -512,12 +453,14 @@ class Service:
             except queue.Full:
                 continue
 
-    def _reply(self, query: zenoh.Query, key: str, answer: Callable[[], Message]) -> None:
+    def _reply(self, query: zenoh.Query, key: str, answer: Callable[..., Message], parameters: bool) -> None:
         # Reply on our own key, not the query's (which may hold wildcards): replies on one key
         # would be consolidated into one.
         try:
-            message = answer()
+            message = answer(query.parameters.get) if parameters else answer()
             query.reply(key, codec.encode(message), encoding=zenoh.Encoding(codec.encoding_of(message)))
+        except GridslamError as error:   # a bad request: the querier is told why
+            query.reply_err(str(error))
         except Exception:  # a failing answer must not kill Zenoh's thread; the querier times out
             log.exception("%s: query on %s failed", self.name, query.key_expr)
 

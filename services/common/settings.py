@@ -4,10 +4,14 @@ runs the core (its TOML table, environment variables and validation) is derived 
 declaration (`config_fields`), and so are command-line flags (`add_flag`), so a setting's name,
 type, default, help and allowed values are written in one place. The cores import only this
 module's `setting`, which needs nothing but the standard library.
+
+Command lines: every parser is a `CommandParser` (whole flag names only), and a flag that was
+renamed keeps its old spelling as `add_renamed_flag`, read as before and noted.
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import typing
 from typing import Any, Literal
@@ -46,9 +50,11 @@ def check(params) -> None:
             raise ConfigError(f"{kind}: invalid {f.name} = {value!r}")
 
 
-def config_fields(params_type: type, prefix: str = "") -> dict[str, tuple[Any, Any]]:
+def config_fields(params_type: type, prefix: str = "", *, optional: bool = False) -> dict[str, tuple[Any, Any]]:
     """pydantic.create_model field definitions for every setting of ``params_type``, named
-    ``prefix + name``, with its default, description and bounds."""
+    ``prefix + name``, with its default, description and bounds. ``optional``: each field may be
+    None and is None by default, meaning "the service's own setting" (a model that passes
+    settings on to a service, such as the whole run's, leaves the default to the service)."""
     from pydantic import Field
 
     fields = {}
@@ -57,7 +63,13 @@ def config_fields(params_type: type, prefix: str = "") -> dict[str, tuple[Any, A
         if meta.get("choices"):
             annotation = Literal[meta["choices"]]
         bounds = {bound: meta[bound] for bound in _BOUNDS if meta.get(bound) is not None}
-        fields[prefix + f.name] = (annotation, Field(f.default, description=meta.get("help", ""), **bounds))
+        description = meta.get("help", "")
+        if optional:
+            annotation, default = annotation | None, None
+            description = f"{description} (default: the service's, {f.default})"
+        else:
+            default = f.default
+        fields[prefix + f.name] = (annotation, Field(default, description=description, **bounds))
     return fields
 
 
@@ -78,3 +90,44 @@ def add_flag(parser, params_type: type, name: str, *, prefix: str = "", flag: st
     elif annotation in (int, float):
         kwargs["type"] = annotation
     parser.add_argument(flag or "--" + (prefix + name).replace("_", "-"), dest=prefix + name, **{**kwargs, **extra})
+
+
+class CommandParser(argparse.ArgumentParser):
+    """An argparse parser that reads only whole flag names: with abbreviations a flag left out or
+    mistyped is silently read as another (`--map DIR` as `--map-optimizer DIR`). Its
+    sub-commands' parsers are CommandParsers too."""
+
+    def __init__(self, *args, allow_abbrev: bool = False, **kwargs):
+        super().__init__(*args, allow_abbrev=allow_abbrev, **kwargs)
+
+
+RENAMED = "renamed_flags"   # the parsed arguments' list of old flag spellings used: [(old, new)]
+
+
+def note_renamed(namespace: argparse.Namespace, old: str, new: str) -> None:
+    """Record that the command line used `old`, the former spelling of `new`."""
+    if getattr(namespace, RENAMED, None) is None:
+        setattr(namespace, RENAMED, [])
+    getattr(namespace, RENAMED).append((old, new))
+
+
+class _Renamed(argparse.Action):
+    def __init__(self, option_strings, dest, new: str, **kwargs):
+        self.new = new
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        note_renamed(namespace, option_string, self.new)
+
+
+def add_renamed_flag(parser, old: str, new: str, **kwargs) -> None:
+    """`old`, the former spelling of the flag `new`: still read, into the same destination, left
+    out of --help, and noted (`renamed_flags`) so that the command line can say so."""
+    parser.add_argument(old, action=_Renamed, new=new, help=argparse.SUPPRESS, default=argparse.SUPPRESS, **kwargs)
+
+
+def renamed_flags(args: argparse.Namespace) -> list[str]:
+    """One line for each old flag spelling the command line used."""
+    return [f"{old} is now spelled {new}; the old spelling still works but will go"
+            for old, new in dict.fromkeys(getattr(args, RENAMED, None) or [])]

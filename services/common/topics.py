@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from schemas import (
-    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate, ServiceStatus,
+    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate, ServiceStatus,
     ViewTemplate,
 )
 from schemas.base import Message
@@ -21,6 +21,7 @@ TOPICS: dict[str, type[Message]] = {
     "map/pose": MapPose,
     "map/update": MapUpdate,
     "map/snapshot": MapSnapshot,
+    "map/route": MapRoute,
     "status": ServiceStatus,
 }
 

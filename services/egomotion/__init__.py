@@ -12,6 +12,7 @@ shape and overrides the preset key by key. docs/egomotion.md describes every par
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from services.egomotion.base import (
 from services.egomotion.mono import MonoEstimator, MonoParams
 from services.egomotion.passthrough import PassthroughEstimator, PassthroughParams
 from services.egomotion.scanline import ScanlineEstimator, ScanlineParams
+from services.egomotion.shards import ShardParams, block_size
 from services.egomotion.stereo import StereoEstimator, StereoParams
 
 ESTIMATORS: dict[str, tuple[type, type]] = {
@@ -37,6 +39,7 @@ ESTIMATORS: dict[str, tuple[type, type]] = {
     "passthrough": (PassthroughEstimator, PassthroughParams),
 }
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
+SHARD_SETTINGS = tuple(f.name for f in dataclasses.fields(ShardParams))   # [egomotion] keys beside the estimators'
 
 
 def make_estimator(name: str, camera: Any = None, params: dict[str, Any] | None = None) -> Estimator:
@@ -140,7 +143,7 @@ def resolve_estimator(estimator: str | None = None, preset: str | None = None, c
     for name, values in table.items():
         if name in ESTIMATORS:
             params[name].update(values)
-        elif name not in ("estimator", "shard_block"):
+        elif name not in ("estimator", *SHARD_SETTINGS):
             raise ConfigError(f"{config_file}: [egomotion] unknown key {name!r}")
     if camera_height is not None:
         params["mono"]["camera_height_m"] = camera_height
@@ -149,6 +152,25 @@ def resolve_estimator(estimator: str | None = None, preset: str | None = None, c
         raise ConfigError(f"unknown estimator {name!r} (available: {', '.join(ESTIMATORS)})")
     params_from_dict(ESTIMATORS[name][1], params[name], where=f"{name} parameters")   # fail at start, not at frame 1
     return name, params[name]
+
+
+def resolve_sharding(estimator: str, instances: int | None = None, shard_block: int | None = None,
+                     config_file: str | Path | None = None, environ=None) -> tuple[ShardParams, int | None]:
+    """How this robot's egomotion instances share its frames (shards.ShardParams) and the frames
+    per block they run `estimator` in (None: one instance, frame after frame; shards.block_size):
+    the config file's [egomotion] instances and shard_block < GRIDSLAM_EGOMOTION_INSTANCES and
+    GRIDSLAM_EGOMOTION_SHARD_BLOCK < ``instances`` and ``shard_block`` (flags; None: not given).
+    The one resolution for the egomotion service and the runner."""
+    from pydantic import create_model
+
+    from services.common.config import load_config
+    from services.common.settings import config_fields, params_of
+
+    model = create_model("ShardConfig", **config_fields(ShardParams))   # the table's other keys are the estimators'
+    config = load_config(model, "egomotion", config_file=Path(config_file) if config_file else None, environ=environ,
+                         overrides={"instances": instances, "shard_block": shard_block})
+    sharding = params_of(ShardParams, config)
+    return sharding, block_size(ESTIMATORS[estimator][0], sharding)
 
 
 __all__ = [
@@ -164,5 +186,6 @@ __all__ = [
     "preset_names",
     "read_config_file",
     "resolve_estimator",
+    "resolve_sharding",
     "transform_from_increment",
 ]

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from services.common.errors import ConfigError, GridslamError
+from services.common.geometry import planar_from_camera
 
 
 class EgomotionError(GridslamError):
@@ -121,11 +122,7 @@ def increment_from_transform(transform: np.ndarray) -> tuple[float, float, float
     its −x translation, yaw the heading of its optical axis about the up axis (−y):
     atan2(−M13, M33), which is the data README's asin(−Tt13) for level motion.
     """
-    motion = invert_transform(transform)
-    forward = float(motion[2, 3])
-    left = float(-motion[0, 3])
-    yaw = math.atan2(-motion[0, 2], motion[2, 2])
-    return forward, left, yaw
+    return planar_from_camera(invert_transform(transform))
 
 
 def transform_from_increment(forward: float, left: float, yaw: float) -> np.ndarray:

@@ -2,7 +2,7 @@
 sizes, as a Markdown table of medians; optionally against another checkout's estimators, or
 with a profile of where the time goes.
 
-Frames come from the rendered test room (services/egomotion/scene.py): a camera driving
+Frames come from the rendered test room (services/benchmarks/box_room.py): a camera driving
 forward 0.1 m and turning 1° per frame, stereo, so every estimator sees the same images.
 Only `estimate()` is timed (not rendering or reading files); the first frame of each run
 (no motion yet) is left out. OpenCV runs on ``--threads`` threads (default 1: one core).
@@ -17,7 +17,6 @@ steadier figure.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import hashlib
 import json
@@ -37,7 +36,10 @@ import numpy as np
 from services.common.errors import ConfigError
 from services.egomotion import ESTIMATORS, make_estimator
 from services.source.frames import Frame
-from services.egomotion.scene import BoxRoom, motion_pose, pinhole
+try:
+    from services.benchmarks.box_room import BoxRoom, motion_pose, pinhole
+except ImportError:   # a --reference checkout from before the room moved out of services/egomotion
+    from services.egomotion.scene import BoxRoom, motion_pose, pinhole
 
 PROFILE_ROWS = 16
 
@@ -98,8 +100,8 @@ class Reference:
     """Another checkout's estimators, timed or profiled in a child process (`serve`)."""
 
     def __init__(self, folder: Path, threads: int) -> None:
-        if not (folder / "services" / "egomotion" / "scene.py").is_file():
-            raise ConfigError(f"--reference {folder}: not a gridslam checkout (no services/egomotion/scene.py)")
+        if not any((folder / "services" / room).is_file() for room in ("benchmarks/box_room.py", "egomotion/scene.py")):
+            raise ConfigError(f"--reference {folder}: not a gridslam checkout (no services/benchmarks/box_room.py)")
         self._child = subprocess.Popen(
             [sys.executable, "-c", _REFERENCE_CHILD, __file__, str(threads)],
             cwd=folder, env={**os.environ, "PYTHONPATH": str(folder)}, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
@@ -115,7 +117,7 @@ class Reference:
             raise ConfigError(f"--reference: its {name} estimator failed at {label} (its error is above)")
         answer = json.loads(line)
         if answer["frames"] != frames_digest(frames):
-            raise ConfigError("--reference: it renders other frames (its scene.py differs), so the times are not comparable")
+            raise ConfigError("--reference: it renders other frames (its box room differs), so the times are not comparable")
         return answer["result"]
 
     def close(self) -> None:
@@ -176,7 +178,10 @@ def _print_profiles(names: list[str], count: int, threads: int, reference: Refer
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench egomotion", description=__doc__.split("\n\n")[0])
+    # Imported here: a --reference checkout's child runs this file against its own `services`.
+    from services.common.settings import CommandParser
+
+    parser = CommandParser(prog="gridslam bench egomotion", description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=20, help="frames per run (default 20)")
     parser.add_argument("--repeats", type=int, default=2, help="runs per estimator and size (default 2)")
     parser.add_argument("--estimators", default=",".join(ESTIMATORS), help="comma-separated (default: all)")

@@ -318,7 +318,7 @@ def load_reference(path: str | Path) -> Trajectory:
     if not path.is_file():
         raise DataError(f"{path}: reference file not found")
     if path.suffix.lower() == ".csv":
-        from services.gridcells.motion_io import load_motion
+        from services.evaluation.motion_io import load_motion
 
         motion = load_motion(path, "csv")
         if motion.frame != "body":

@@ -1,6 +1,8 @@
 """egomotion: estimate the camera's motion between consecutive frames (scanline, stereo, mono, passthrough).
 
-Several instances may share one robot's frames (docs/pipeline.md, "Sharded ego-motion"): each
+One instance (`instances` = 1, the default) runs the estimator frame after frame, as `gridslam
+odometry` does. Several instances may share one robot's frames (docs/pipeline.md, "Sharded
+ego-motion"), each told how many run (`instances` > 1): each
 receives every frame and keeps the newest ones, estimates the frames of its share
 (services/egomotion/shards.py: blocks of `shard_block` seqs, each run by a fresh estimator primed
 with the frames before it, so that every instance computes the same increments), and says which
@@ -16,21 +18,19 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 import threading
 
 import zenoh
 
 from schemas import CameraFrame, EgoMotion, PlanarIncrement
 from services.common import topics
-from services.common.config import read_toml
 from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.errors import ConfigError
-from services.egomotion import ESTIMATORS, make_estimator, resolve_estimator
+from services.common.settings import add_flag
+from services.egomotion import ESTIMATORS, SHARD_SETTINGS, make_estimator, resolve_estimator, resolve_sharding
 from services.egomotion.base import params_from_dict
-from services.egomotion.shards import BLOCK as SHARD_BLOCK, BlockEstimation, FrameHistory, block_owner, default_block
+from services.egomotion.shards import BlockEstimation, FrameByFrame, FrameHistory, ShardParams, block_owner
 from services.source.frames import Camera, Frame
 
 log = logging.getLogger(__name__)
@@ -58,19 +58,31 @@ class EgomotionService(Service):
 
     def __init__(self, runtime: RuntimeConfig, estimator_name: str, params: dict, instance: str | None = None,
                  shard_block: int | None = None):
+        """`shard_block`: frames per block, as every instance sharing the robot's frames runs them
+        (shards.block_size); None: this instance is the robot's only one, frame after frame."""
         super().__init__(runtime, instance)
         self.estimator_name = estimator_name
         self.params = params
-        self.shard_block = shard_block = shard_block or default_block(ESTIMATORS[estimator_name][0])
+        self.shard_block = shard_block
         self.noise = params_from_dict(ESTIMATORS[estimator_name][1], params, where=f"{estimator_name} parameters")
-        self.history = FrameHistory(max(HISTORY_FRAMES, 4 * shard_block))
-        # The estimator is built with each block's calibration, which comes with the frames.
-        self.blocks = BlockEstimation(lambda frame: make_estimator(estimator_name, frame.camera, params), shard_block,
-                                      frame_of=frame_from_message)
+        # The estimator is built with the calibration of its first frame (of each block, sharded).
+        make = lambda frame: make_estimator(estimator_name, frame.camera, params)  # noqa: E731
+        if shard_block is None:
+            self.history = None
+            self.blocks: FrameByFrame | BlockEstimation = FrameByFrame(make, frame_of=frame_from_message)
+        else:
+            self.history = FrameHistory(max(HISTORY_FRAMES, 4 * shard_block))
+            self.blocks = BlockEstimation(make, shard_block, frame_of=frame_from_message)
         self.estimated = 0
         self._members: dict[str, tuple[str, int]] = {}   # shard token key → (instance, since); Zenoh threads write it
         self._members_lock = threading.Lock()
         self._token = None
+        self._warned_shared = False
+
+    @property
+    def alone(self) -> bool:
+        """Whether this instance was started as the robot's only one (frame after frame)."""
+        return self.shard_block is None
 
     def setup(self) -> None:
         self.subscribe("camera/frame", self.on_frame, on_stale=self.on_frame_again)
@@ -88,6 +100,12 @@ class EgomotionService(Service):
                 self._members.pop(key, None)
             else:
                 self._members[key] = (instance, since)
+        if self.alone and sample.kind != zenoh.SampleKind.DELETE and instance != self.instance and not self._warned_shared:
+            self._warned_shared = True
+            log.warning("egomotion/%s runs frame after frame as the robot's only instance (instances = 1), but "
+                        "instance %s shares the frames in blocks: their increments differ and both publish; give every "
+                        "instance the same --instances N (GRIDSLAM_EGOMOTION_INSTANCES; docs/pipeline.md)",
+                        self.instance, instance)
 
     def members(self) -> dict[str, float]:
         """Every instance sharing the frames → its `since` (this one's: infinite until it holds enough frames)."""
@@ -96,10 +114,16 @@ class EgomotionService(Service):
         members: dict[str, float] = {}
         for instance, since in tokens:
             members[instance] = min(since, members.get(instance, math.inf))
-        members[self.instance] = math.inf if self.history.since is None else self.history.since
+        if self.history is None:
+            members[self.instance] = 0
+        else:
+            members[self.instance] = math.inf if self.history.since is None else self.history.since
         return members
 
     def on_frame(self, message: CameraFrame) -> None:
+        if self.alone:
+            self.estimate(message)
+            return
         seq = message.header.seq
         self.history.add(seq, message)
         if self._token is None and self.history.since is not None:
@@ -117,13 +141,18 @@ class EgomotionService(Service):
         seq = message.header.seq
         if self.replay_outputs(seq):
             return
+        if self.alone:   # not published: the estimator refused it, or it is older than the estimator's last
+            last = self.blocks.last_fed
+            if last is None or seq > last:
+                self.estimate(message)
+            return
         if self.history.add(seq, message) and block_owner(seq, self.shard_block, self.members()) == self.instance:
             self.estimate(message)
 
     def estimate(self, message: CameraFrame) -> None:
         # A frame this estimator cannot use (stereo given a mono frame: EgomotionError) is
         # counted and dropped by the base class; the next increment starts from the frame before.
-        estimate = self.blocks.estimate(message.header.seq, self.history)
+        estimate = self.blocks.estimate(message.header.seq, message if self.alone else self.history)
         increment = estimate.increment
         covariance = self.noise.covariance(increment)
         self.estimated += 1
@@ -148,8 +177,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                          "or a preset file")
     parser.add_argument("--camera-height", type=float, metavar="M",
                         help="camera height above the ground, m (the mono estimator's camera_height_m: a metric scale)")
-    parser.add_argument("--shard-block", type=int, help=f"frames per block of the shared estimation (default {SHARD_BLOCK}, "
-                                                        "mono 16; every instance of a robot must use the same)")
+    for name in SHARD_SETTINGS:   # --instances, --shard-block
+        add_flag(parser, ShardParams, name, metavar="N")
 
 
 def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
@@ -157,23 +186,7 @@ def estimator_settings(args: argparse.Namespace) -> tuple[str, dict]:
     return resolve_estimator(args.estimator, args.preset, args.config, getattr(args, "camera_height", None))
 
 
-def shard_block_setting(args: argparse.Namespace, estimator_name: str) -> int:
-    """Frames per block: the estimator's default (shards.default_block) < the --config file's
-    [egomotion] shard_block < GRIDSLAM_EGOMOTION_SHARD_BLOCK < --shard-block."""
-    table = read_toml(args.config).get("egomotion", {}) if args.config else {}
-    value, where = default_block(ESTIMATORS[estimator_name][0]), "shard_block"
-    for name, given in ((f"{args.config}: [egomotion] shard_block", table.get("shard_block")),
-                        ("GRIDSLAM_EGOMOTION_SHARD_BLOCK", os.environ.get("GRIDSLAM_EGOMOTION_SHARD_BLOCK")),
-                        ("--shard-block", args.shard_block)):
-        if given is not None:
-            value, where = given, name
-    if isinstance(value, str) and value.strip().isdigit():
-        value = int(value)
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise ConfigError(f"{where} must be a whole number of frames, at least 1; got {value!r}")
-    return value
-
-
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     name, params = estimator_settings(args)
-    return EgomotionService(runtime, name, params, args.instance, shard_block_setting(args, name)).run()
+    _, block = resolve_sharding(name, args.instances, args.shard_block, args.config)
+    return EgomotionService(runtime, name, params, args.instance, block).run()

@@ -1,6 +1,13 @@
-"""Sharded ego-motion (issue 15): several egomotion instances share one robot's frames, and the
-increments are the same, bit for bit, whichever instance computes which frame. Pure core: frames
-and names in, increments out (the service adapter decodes, publishes and watches membership).
+"""Sharded ego-motion: several egomotion instances share one robot's frames, and the increments
+are the same, bit for bit, whichever instance computes which frame. Pure core: frames and names
+in, increments out (the service adapter decodes, publishes and watches membership).
+
+One instance or several. An instance is told how many instances share the robot's frames
+(`instances`: `gridslam run` passes its --egomotion-instances, a deployment sets it). One
+instance runs the estimator frame after frame (FrameByFrame), exactly as `gridslam odometry`
+does; only several run it in blocks, because only blocks make an increment independent of which
+instance saw the frames before it. `block_size` is the one rule for both the runner (the frames
+it keeps in flight) and the service.
 
 Blocks. The stereo and mono estimators carry state from frame to frame (stereo: the keyframe,
 the last motion that seeds tracking, the disparity that seeds stereo matching; mono: the last
@@ -10,9 +17,9 @@ seqs k·block … (k+1)·block − 1) and a fresh estimator runs through each bl
 `warmup` frames held just before it (their own increments are dropped). If the block's first
 increment fails (quality 0: a frame whose stereo matching failed, say) the block is run again
 primed with one more frame, up to `warmup + retries` frames. Scanline and passthrough keep only
-the previous frame, so for them this is exactly the unsharded estimator; for stereo and mono a
-block start drops that state (docs/pipeline.md has the measured effect; mono's blocks are longer,
-`default_block`). One instance alone runs the same blocks, so any number of instances agree with it.
+the previous frame, so for them this is exactly the estimator frame after frame; for stereo and
+mono a block start drops that state (docs/pipeline.md has the measured effect; mono's blocks are
+longer, `default_block`). Every instance runs the same blocks, so any number of them agree.
 
 Shares. Every instance announces `since`: the first seq from which it can run a block exactly
 (it has held every frame from `warmup + retries` frames before it). Block k goes to the
@@ -30,6 +37,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from services.common.settings import setting
 from services.egomotion.base import Estimator, Increment
 
 log = logging.getLogger(__name__)
@@ -42,6 +50,30 @@ RETRIES = 1   # more frames tried when the block's first increment fails
 def default_block(estimator_class: type) -> int:
     """Frames per block for an estimator: its own `shard_block` (mono's is longer), else BLOCK."""
     return int(getattr(estimator_class, "shard_block", BLOCK))
+
+
+@dataclass(frozen=True)
+class ShardParams:
+    """How a robot's egomotion instances share its frames, declared once: keys of `[egomotion]`,
+    GRIDSLAM_EGOMOTION_INSTANCES and _SHARD_BLOCK, flags --instances and --shard-block."""
+
+    LABEL = "sharding"
+
+    instances: int = setting(1, ge=1, help="egomotion instances sharing this robot's frames: 1 (this one alone) runs the "
+                                           "estimator frame after frame, more run it in blocks the same way on every "
+                                           "instance; give every instance the same number")
+    shard_block: int = setting(0, ge=0, help=f"frames per block when several instances share the frames (0: the "
+                                             f"estimator's own, {BLOCK}, mono 16); every instance must use the same")
+
+
+def block_size(estimator_class: type, sharding: ShardParams) -> int | None:
+    """Frames per block of the shared estimation, or None: frame after frame. One instance runs
+    the estimator frame after frame; several run it in blocks of `shard_block` (0: the
+    estimator's own, `default_block`), the same on every instance. The one rule for the
+    egomotion service and for the frames `gridslam run` keeps in flight."""
+    if sharding.instances <= 1:
+        return None
+    return sharding.shard_block or default_block(estimator_class)
 
 
 def block_owner(seq: int, block: int, members: Mapping[str, float]) -> str | None:
@@ -115,6 +147,35 @@ class _Run:
         increment = self.estimator.estimate(frame)   # raises for a frame it cannot use: skipped
         self.last_good = seq
         return Estimate(previous, increment)
+
+
+class FrameByFrame:
+    """Increments of one estimator fed every frame in seq order: what one egomotion instance
+    alone runs, and what `gridslam odometry` runs. `make(frame)` builds the estimator with the
+    first frame (which brings the calibration); `frame_of(item)` turns what the service holds
+    into the estimator's frame."""
+
+    rebuilt = 0   # frames estimated again to rebuild a state: never, frame after frame
+
+    def __init__(self, make: Callable[[Any], Estimator], frame_of: Callable[[Any], Any] = lambda item: item):
+        self.make = make
+        self.frame_of = frame_of
+        self._run: _Run | None = None
+
+    @property
+    def last_fed(self) -> int | None:
+        """The last frame given to the estimator (a frame not after it cannot be estimated now)."""
+        return self._run.last_fed if self._run is not None else None
+
+    def estimate(self, seq: int, item: Any) -> Estimate:
+        """The increment of frame `seq`, which comes after every frame given before
+        (ValueError otherwise); raises what the estimator raises for that frame."""
+        if self.last_fed is not None and seq <= self.last_fed:
+            raise ValueError(f"frame {seq} is not after frame {self.last_fed}, the last one estimated")
+        frame = self.frame_of(item)
+        if self._run is None:
+            self._run = _Run(0, self.make(frame))
+        return self._run.feed(seq, frame)
 
 
 class BlockEstimation:

@@ -22,7 +22,8 @@ import math
 import numpy as np
 
 from services.common.errors import DataError
-from services.evaluation.trajectory import Trajectory, planar_increments, wrap_angle
+from services.common.geometry import wrap
+from services.evaluation.trajectory import Trajectory, planar_increments
 
 log = logging.getLogger(__name__)
 
@@ -311,7 +312,7 @@ def frame_error_series(est, ref, scale_align: bool = False) -> tuple[np.ndarray,
 
 def _planar_motions(forward, left, yaw) -> np.ndarray:
     """4×4 motions of increments 1..N-1."""
-    forward, left, yaw = forward[1:], left[1:], wrap_angle(yaw[1:])
+    forward, left, yaw = forward[1:], left[1:], wrap(yaw[1:])
     motions = np.tile(np.eye(4), (len(forward), 1, 1))
     motions[:, 0, 0] = motions[:, 1, 1] = np.cos(yaw)
     motions[:, 1, 0] = np.sin(yaw)

@@ -24,8 +24,16 @@ import numpy as np
 from services.common.errors import DataError
 
 
+TRUE_CLOSURE_M = 2.0   # a closure between frames farther apart than this (by ground truth) is false
+
+
 class GroundTruthError(DataError):
     """A ground-truth file or spec that cannot be read (the message names it)."""
+
+
+def same_place(a, b, radius: float = TRUE_CLOSURE_M) -> bool:
+    """Whether two true positions (x, y) are one place: a closure between them is true."""
+    return math.dist(a, b) <= radius
 
 
 @dataclass(frozen=True)
@@ -62,8 +70,7 @@ class RevisitRadius:
 
     def is_true(self, frame: int, matched: int) -> bool:
         n = len(self.positions)
-        return 0 <= frame < n and 0 <= matched < n and \
-            math.dist(self.positions[frame], self.positions[matched]) <= self.radius
+        return 0 <= frame < n and 0 <= matched < n and same_place(self.positions[frame], self.positions[matched], self.radius)
 
     @property
     def revisit_frames(self) -> set[int]:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from services.common.errors import DataError
+from services.common.geometry import wrap
 
 log = logging.getLogger(__name__)
 
@@ -204,11 +205,6 @@ def planar_to_camera(traj: Trajectory) -> Trajectory:
     return _conjugate(traj, PLANAR_FROM_CAMERA.T)
 
 
-def wrap_angle(angle):
-    """Angle(s) wrapped to [-pi, pi)."""
-    return (np.asarray(angle, dtype=float) + math.pi) % (2.0 * math.pi) - math.pi
-
-
 # --- increments (dead reckoning) ------------------------------------------------------------
 def planar_increments(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame body-frame planar motions (forward m, left m, yaw rad), each (N,).
@@ -224,7 +220,7 @@ def planar_increments(traj: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndar
         cos_h, sin_h = np.cos(heading[:-1]), np.sin(heading[:-1])
         forward[1:] = cos_h * dx + sin_h * dy
         left[1:] = -sin_h * dx + cos_h * dy
-        yaw[1:] = wrap_angle(np.diff(heading))
+        yaw[1:] = wrap(np.diff(heading))
     return forward, left, yaw
 
 
@@ -247,7 +243,7 @@ def integrate_increments(forward, left, yaw, stamps=None, x0: float = 0.0, y0: f
     heading_before = np.concatenate([[heading0], heading_after[:-1]])
     x = x0 + np.cumsum(np.cos(heading_before) * forward - np.sin(heading_before) * left)
     y = y0 + np.cumsum(np.sin(heading_before) * forward + np.cos(heading_before) * left)
-    return Trajectory.from_planar(stamps, x, y, wrap_angle(heading_after))
+    return Trajectory.from_planar(stamps, x, y, wrap(heading_after))
 
 
 # --- files ----------------------------------------------------------------------------------

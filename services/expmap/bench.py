@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.common.settings import CommandParser
 from services.loopclosure.places import DEFAULT_PLACE_RECOGNITION, PLACE_RECOGNITIONS
 
 CIRCUIT_M = 1000.0   # one lap: 1000 experiences 1 m apart
@@ -66,7 +67,8 @@ def circuit_pose(k: int) -> tuple[float, float, float]:
 
 def map_stream(size: int, frames: int, build_every: int, burst: int, seed: int):
     """(frame, odometry pose, template, closure or None, timed?) for `size` + `frames` frames."""
-    from services.expmap.graph import ClosureInput, between, compose
+    from services.common.geometry import between, compose
+    from services.expmap.graph import ClosureInput
 
     rng = np.random.default_rng(seed)
     lap = int(CIRCUIT_M)
@@ -180,7 +182,7 @@ def replayed(row: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench mapping", description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog="gridslam bench mapping", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="1000,10000,100000", help="comma-separated map sizes (templates and experiences)")
     parser.add_argument("--frames", type=int, default=400, help="frames timed per size")
     parser.add_argument("--closure-frames", type=int, default=10, help="frames of every 100 timed that confirm a closure")

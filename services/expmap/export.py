@@ -10,7 +10,6 @@ with a warning exactly as a restart would skip it.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -23,12 +22,12 @@ from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.graph import ExperienceMap, MapParams
-from services.expmap.store import FORMAT, VERSION, Step, parse_records, rebuild
+from services.expmap.store import FORMAT, VERSION, Step, parse_records, rebuild, sessions_of
 
 log = logging.getLogger(__name__)
 
 GRAPH_FORMAT = "gridslam-experience-graph"
-GRAPH_VERSION = 2
+GRAPH_VERSION = 3   # 3: parts of the graph (sessions)
 
 
 class MapExportError(DataError):
@@ -44,10 +43,11 @@ class MapLog:
     steps: list[Step]
     torn_last_record: bool = False
     checkpoints: list[int] = field(default_factory=list)   # after how many steps the map was rebased
+    sessions: list[tuple[int, dict]] = field(default_factory=list)   # where each later session began
 
     def rebuild(self) -> ExperienceMap:
         """The map: from the log's checkpoint file and the steps after it, or from all its steps."""
-        return rebuild(self.path, self.params, self.steps, self.checkpoints)[0]
+        return rebuild(self.path, self.params, self.steps, self.checkpoints, sessions=self.sessions)[0]
 
 
 def read_log(path, params: MapParams | None = None) -> MapLog:
@@ -73,21 +73,26 @@ def read_log(path, params: MapParams | None = None) -> MapLog:
         steps, checkpoints = parse_records(records[1:])
     except ValueError as error:
         raise MapExportError(f"{path}: {error}") from None
-    return MapLog(path, logged, steps, torn, checkpoints)
+    return MapLog(path, logged, steps, torn, checkpoints, sessions_of(records[1:]))
 
 
 def graph_dict(experience_map: ExperienceMap) -> dict:
-    """The map as a graph: experiences (final map pose, template, frame of creation) and links
-    (transform from source to target, the frame that made it, loop_closure, and accepted: false
-    for a closure the map refused)."""
+    """The map as a graph: experiences (final map pose, template, frame of creation, the part of
+    the graph it is in: 0 for the map's frame, another for a later session no closure joined to
+    it yet, whose poses are then in its own frame) and links (transform from source to target,
+    the frame that made it, loop_closure, and accepted: false for a closure the map refused);
+    `parts` lists the parts, `connected` says whether there is just one."""
     poses = experience_map.final_poses()
     return {
         "format": GRAPH_FORMAT,
         "version": GRAPH_VERSION,
         "params": asdict(experience_map.params),
         "frames": len(experience_map.frames),
+        "parts": sorted(experience_map.anchors),
+        "connected": len(experience_map.anchors) == 1,
         "experiences": [{"id": i, "x": float(x), "y": float(y), "heading": float(heading),
-                         "template_id": experience_map.templates[i], "frame": experience_map.created[i]}
+                         "template_id": experience_map.templates[i], "frame": experience_map.created[i],
+                         "part": experience_map.parts[i]}
                         for i, (x, y, heading) in enumerate(poses)],
         "links": [asdict(link) for link in experience_map.links],
     }
@@ -121,6 +126,7 @@ class ExportResult:
         links = self.experience_map.links
         return {"frames": len(self.map_log.steps), "experiences": len(self.experience_map), "links": len(links),
                 "loop_closure_links": sum(link.loop_closure for link in links),
+                "sessions": 1 + len(self.map_log.sessions), "parts": len(self.experience_map.anchors),
                 "torn_last_record": self.map_log.torn_last_record}
 
 

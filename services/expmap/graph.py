@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common.errors import ConfigError
+from services.common.geometry import adjoint, between, compose, inverse
 
 OPTIMIZERS = ("gtsam", "ratslam")
 CLOSURES = ("metric", "ratslam")
@@ -81,6 +82,9 @@ class MapParams:
     kernel_width: float = 1.0              # the kernel's constant, in standard deviations of the closure
     closure_gate: float = 3.0              # refuse a closure whose residual after solving exceeds this (std devs)
     closure_iterations: int = 4            # extra solver iterations on a frame with a closure
+    # Sessions: closures joining two parts of the map (a later session to the saved map) must agree
+    join_closures: int = 3                 # this many of one frame's closures, on where the part is,
+    join_gate: float = 3.0                 # within this many standard deviations of each other
 
     def check(self) -> None:
         rules = (("new_experience_distance", self.new_experience_distance > 0), ("optimizer", self.optimizer in OPTIMIZERS),
@@ -94,42 +98,11 @@ class MapParams:
                  ("snap_translation_sigma", self.snap_translation_sigma > 0), ("snap_heading_sigma", self.snap_heading_sigma > 0),
                  ("mono_scale_sigma", self.mono_scale_sigma > 0), ("robust_kernel", self.robust_kernel in KERNELS),
                  ("kernel_width", self.kernel_width > 0), ("closure_gate", self.closure_gate > 0),
-                 ("closure_iterations", self.closure_iterations >= 0))
+                 ("closure_iterations", self.closure_iterations >= 0), ("join_closures", self.join_closures >= 1),
+                 ("join_gate", self.join_gate > 0))
         for name, ok in rules:
             if not ok:
                 raise ConfigError(f"experience map: invalid {name} = {getattr(self, name)!r}")
-
-
-# --- planar poses (x, y, heading) ---------------------------------------------------------------
-def wrap(angle):
-    return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
-
-
-def compose(pose: tuple[float, float, float], offset: tuple[float, float, float]) -> tuple[float, float, float]:
-    """pose ∘ offset for planar poses (x, y, heading)."""
-    x, y, th = pose
-    dx, dy, dth = offset
-    c, s = math.cos(th), math.sin(th)
-    return x + c * dx - s * dy, y + s * dx + c * dy, float(wrap(th + dth))
-
-
-def between(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
-    """The offset of b in a's frame: a ∘ between(a, b) = b."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return c * dx + s * dy, -s * dx + c * dy, float(wrap(b[2] - a[2]))
-
-
-def inverse(pose: tuple[float, float, float]) -> tuple[float, float, float]:
-    return between(pose, (0.0, 0.0, 0.0))
-
-
-def adjoint(pose: tuple[float, float, float]) -> np.ndarray:
-    """SE(2) adjoint: carries a right-hand tangent perturbation across `pose`
-    (pose ∘ Exp(ε) = Exp(Ad ε) ∘ pose); tangent order (x, y, heading)."""
-    x, y, th = pose
-    c, s = math.cos(th), math.sin(th)
-    return np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
 
 
 # --- links and closures ---------------------------------------------------------------------------
@@ -189,6 +162,11 @@ class FrameResult:
     closure: str | None = None                # this frame's closure: accepted, rejected, unmeasured, unmatched
     residual: float | None = None             # the closure's residual after solving, standard deviations
     decisions: list[tuple[ClosureInput, str, float | None]] = field(default_factory=list)   # every closure decided
+    localized: bool = True                    # the pose is in the map's frame (not: a part not joined to it yet,
+                                              # or a localisation not placed yet: the pose is its odometry's)
+    joined: list[int] = field(default_factory=list)   # parts joined to the map's frame at this frame
+    placed: bool = False                      # a localisation was placed (again) at this frame
+    lost: bool = False                        # a localisation was lost at this frame
 
 
 @dataclass(frozen=True, eq=False)
@@ -207,6 +185,8 @@ IDENTITY = (0.0, 0.0, 0.0)
 # Frames whose offset covariance is kept, for closures of earlier frames of a confirmed run (the
 # consistency rule's window is ten frames).
 RECENT_COVARIANCES = 64
+JOINED_PRIOR_SIGMA = 1e3   # the prior a joined part keeps (m, rad): it only keeps the solve determinate
+JOIN_WINDOW = 10           # frames whose closures between two parts are weighed together (the rule's window)
 
 
 class ExperienceMap:
@@ -229,6 +209,11 @@ class ExperienceMap:
         self._frame_at: dict[int, int] = {}             # frame → its row of `frames`
         self._by_template: dict[int, int] = {}          # template → its latest experience
         self._recent_covariances: dict[int, np.ndarray] = {}   # frame → its offset covariance, the last frames'
+        self.parts: list[int] = []                      # the part of the graph each experience is in (0: the map's frame)
+        self.anchors: dict[int, int] = {0: 0}           # each part → its first experience
+        self._new_part = False                          # the next frame starts a part (a new session)
+        self._joining: list[tuple] = []                 # recent placements of a part in another's frame (_join)
+        self.localizer = None                           # a localisation session on this map (localizer.py)
         from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
         self.optimizer = PoseGraph(self) if params.optimizer == "gtsam" else Relaxation(self)
 
@@ -250,10 +235,15 @@ class ExperienceMap:
         the map has, at most RECENT_COVARIANCES back)."""
         if not all(math.isfinite(v) for v in odometry):
             raise ValueError(f"frame {frame}: odometry pose {odometry} is not finite")
+        if self.localizer is not None:
+            return self._localize(frame, odometry, closure, covariance, earlier)
         result = FrameResult(frame, -1, (0.0, 0.0, 0.0))
-        if self.current is None:
-            self._add_experience(odometry, template_id, frame, result)   # the map starts as the odometry frame
-            self.current, self.anchor = 0, odometry
+        if self.current is None or self._new_part:
+            # The map starts as the odometry frame; a later session as a part of its own, where its
+            # odometry puts it, until closures join it to the map.
+            new = self._add_experience(odometry, template_id, frame, result, anchor=self.current is not None)
+            self._move_to(new, odometry)
+            self._new_part = False
         else:
             self._accumulate(between(self.last_odometry, odometry), covariance)
         self.last_odometry = odometry
@@ -274,9 +264,12 @@ class ExperienceMap:
             self._add_link(link, result)
             self._move_to(new, odometry)
             offset = (0.0, 0.0, 0.0)
+        across: list[tuple] = []   # closures to another part: decided together (_join)
         if target is not None and self.params.closure == "metric":
             if not closure.measured:
                 result.closure = "unmeasured"
+            elif self.parts[target] != self.parts[self.current]:
+                across.append((closure, self.current, offset, self.offset_covariance.copy(), target, matched_offset, frame))
             elif target != self.current:
                 measurement, covariance = self._measurement(closure, target, matched_offset, offset, self.current,
                                                             self.offset_covariance)
@@ -287,11 +280,14 @@ class ExperienceMap:
         self._recent_covariances[frame] = self.offset_covariance.copy()
         self._recent_covariances.pop(frame - RECENT_COVARIANCES, None)
         for closure in earlier:
-            self._earlier_closure(closure, frame, result)
+            self._earlier_closure(closure, frame, result, across)
+        if across:
+            self._join(across, result)
         moved = self.optimizer.solve(closure_frame=any(fate in ("accepted", "rejected") for _, fate, _ in result.decisions))
         result.moved = [i for i in moved if i not in result.new_experiences]
         result.experience = self.current
         result.pose = compose(tuple(self._poses[self.current]), offset)
+        result.localized = self.parts[self.current] == 0
         self._frame_at[frame] = len(self.frames)
         self.frames.append((frame, self.current, offset))
         self.last_frame = frame
@@ -303,7 +299,7 @@ class ExperienceMap:
         self.residuals.append(result.residual)
         result.decisions.append((closure, result.closure, result.residual))
 
-    def _earlier_closure(self, closure: ClosureInput, frame: int, result: FrameResult) -> None:
+    def _earlier_closure(self, closure: ClosureInput, frame: int, result: FrameResult, across: list) -> None:
         """A closure of an earlier frame (metric closures only: a snap moves the robot, which an
         earlier frame cannot), linked from the experience the robot was at then; "unmatched" when
         that frame is not among the map's last RECENT_COVARIANCES."""
@@ -320,6 +316,9 @@ class ExperienceMap:
             return
         elif not closure.measured:
             decided.closure = "unmeasured"
+        elif self.parts[target] != self.parts[source]:
+            across.append((closure, source, offset, covariance, target, matched_offset, closure.frame))
+            return
         elif target != source:
             measurement, link_covariance = self._measurement(closure, target, matched_offset, offset, source, covariance)
             self._decide(self._closure_link(source, target, offset, measurement, matched_offset, closure.frame),
@@ -328,6 +327,104 @@ class ExperienceMap:
             self._record(closure.frame, closure, decided)
             result.decisions += decided.decisions
             result.new_links += decided.new_links
+
+    def _join(self, across: list, result: FrameResult) -> None:
+        """Closures between two parts of the graph: each says where its frame's part is in the
+        other part's frame. When `join_closures` of those of the last JOIN_WINDOW frames agree
+        (within `join_gate` standard deviations), the younger part is moved there (its prior
+        made weak) and this frame's closures are tested and kept as any other; until then they
+        are refused, kept as evidence. A closure to a place with a look-alike (an experience of a
+        closure the map refused) joins nothing."""
+        frame = result.frame
+        self._joining = [entry for entry in self._joining if entry[0] > frame - JOIN_WINDOW]
+        aliased = self.aliased()
+        placements = []
+        for closure, source, offset, covariance, target, matched_offset, link_frame in across:
+            measurement, link_covariance = self._measurement(closure, target, matched_offset, offset, source, covariance)
+            link = self._closure_link(source, target, offset, measurement, matched_offset, link_frame)
+            placements.append((closure, link, link_covariance))
+            if {source, target} & aliased:
+                continue
+            # Where the source experience is in the target's part, and so the transform of its part.
+            implied = compose(tuple(self._poses[target]), inverse(link.transform))
+            moved_part, fixed_part = sorted((self.parts[source], self.parts[target]), reverse=True)
+            transform = compose(implied, inverse(tuple(self._poses[source])))
+            if moved_part != self.parts[source]:   # the target's part is the younger: move it the other way
+                transform = inverse(transform)
+            self._joining.append((frame, transform, link_covariance, moved_part, fixed_part))
+        best: list[int] = []
+        for i, (_, transform_i, covariance_i, moved_i, fixed_i) in enumerate(self._joining):
+            agreeing = [j for j, (_, transform_j, covariance_j, moved_j, fixed_j) in enumerate(self._joining)
+                        if (moved_j, fixed_j) == (moved_i, fixed_i)
+                        and _mahalanobis(transform_i, transform_j, covariance_i + covariance_j) <= self.params.join_gate]
+            if len(agreeing) > len(best):
+                best = agreeing
+        if len(best) >= self.params.join_closures:
+            _, transform, _, moved_part, fixed_part = self._joining[best[0]]
+            self._move_part(moved_part, fixed_part, transform)
+            self._joining = [entry for entry in self._joining if moved_part not in entry[3:5]]
+            result.joined.append(moved_part)
+        for closure, link, covariance in placements:
+            decided = FrameResult(link.frame, -1, IDENTITY)
+            if self.parts[link.source] == self.parts[link.target]:
+                # Composed anew: the moved part's poses changed, not the measurement.
+                self._decide(link, covariance, decided)
+            else:
+                self.optimizer.add_refused(covariance)
+                self._add_link(dataclasses.replace(link, accepted=False), decided)
+                decided.closure = "rejected"
+            self._record(link.frame, closure, decided)
+            result.decisions += decided.decisions
+            result.new_links += decided.new_links
+
+    def _move_part(self, part: int, into: int, transform: tuple[float, float, float]) -> None:
+        """Move every experience of ``part`` by ``transform`` into the frame of part ``into``,
+        which it joins: the graph is rebuilt at the moved poses, the part's prior made weak."""
+        members = np.flatnonzero(np.array(self.parts) == part)
+        state = self.state()
+        rows = {"poses": members}
+        if "junctions" in state:   # the pose graph's estimates, of its junctions (optimizers.PoseGraph)
+            rows["theta"] = np.flatnonzero(np.isin(state["junctions"], members))
+        for key, moved in rows.items():
+            for row in moved.tolist():
+                state[key][row] = compose(transform, tuple(state[key][row]))
+        if "part_priors" in state:   # the part's prior goes with it, weak: the closures hold it now
+            for row in state["part_priors"]:
+                if int(row[0]) == self.anchors[part]:
+                    row[1:4] = compose(transform, tuple(row[1:4]))
+                    row[4] = JOINED_PRIOR_SIGMA
+        for index in members.tolist():
+            self._poses[index] = state["poses"][index]
+            self.parts[index] = into
+        del self.anchors[part]
+        self.optimizer.rebuild(state)
+
+    def aliased(self) -> set[int]:
+        """The experiences that have a look-alike: those of the closures the map refused."""
+        return {e for link in self.links if link.loop_closure and not link.accepted for e in (link.source, link.target)}
+
+    def start_session(self, localize: bool = False) -> None:
+        """The frames from here on are a later session on this map: its own part of the graph until
+        closures join it, or (``localize``) a localisation that adds nothing to the map."""
+        if localize:
+            from services.expmap.localizer import Localizer
+
+            self.localizer = Localizer(self.final_poses(), {f: (e, o) for f, e, o in self.frames}, aliased=self.aliased())
+        else:
+            self._new_part = True
+
+    def _localize(self, frame, odometry, closure, covariance, earlier) -> FrameResult:
+        own = (dataclasses.replace(closure, frame=frame),) if closure is not None else ()
+        located = self.localizer.step(frame, odometry, own + tuple(earlier), covariance)
+        result = FrameResult(frame, self.localizer.experience, located.pose, localized=located.localized,
+                             placed=located.placed, lost=located.lost)
+        for decided, fate, residual in located.decisions:
+            self.closures[fate] += 1
+            self.decisions.append((decided.frame, decided.matched_frame, fate))
+            self.residuals.append(residual)
+            result.decisions.append((decided, fate, residual))
+        self.last_frame = frame
+        return result
 
     def trajectory(self) -> list[tuple[int, float, float, float]]:
         """(frame, x, y, heading) of every frame, placed on the final map (`final_poses`)."""
@@ -366,6 +463,11 @@ class ExperienceMap:
                 "residuals": np.array([np.nan if r is None else r for r in self.residuals], dtype=float),
                 "recent_covariances": np.array([(frame, *c.ravel()) for frame, c in self._recent_covariances.items()],
                                                dtype=float).reshape(-1, 10),
+                "parts": np.array(self.parts, dtype=np.int64),
+                "anchors": np.array(sorted(self.anchors.items()), dtype=np.int64).reshape(-1, 2),
+                "new_part": np.array(self._new_part),
+                "joining": np.array([(f, *t, *c.ravel(), moved, fixed) for f, t, c, moved, fixed in self._joining],
+                                    dtype=float).reshape(-1, 15),
                 **self.optimizer.state()}
 
     @classmethod
@@ -406,6 +508,13 @@ class ExperienceMap:
         self.residuals = [None if np.isnan(r) else float(r) for r in state["residuals"]]
         self._recent_covariances = {int(row[0]): np.array(row[1:]).reshape(3, 3)
                                     for row in state.get("recent_covariances", np.zeros((0, 10)))}
+        self.parts = [int(v) for v in state["parts"]] if "parts" in state else [0] * len(self.templates)
+        self.anchors = {int(p): int(e) for p, e in state["anchors"]} if "anchors" in state else {0: 0}
+        self._new_part = bool(state["new_part"]) if "new_part" in state else False
+        self._joining = [(int(row[0]), tuple(row[1:4]), np.array(row[4:13]).reshape(3, 3), int(row[13]), int(row[14]))
+                         for row in state.get("joining", np.zeros((0, 15)))]
+        if len(self.parts) != len(self.templates):
+            raise ValueError("experience parts of another map size")
         if len(self.residuals) != len(self.decisions):
             raise ValueError("decisions and residuals of different lengths")
         self._frame_at = {frame: row for row, (frame, _, _) in enumerate(self.frames)}
@@ -495,7 +604,8 @@ class ExperienceMap:
         self.offset_covariance = np.zeros((3, 3))
 
     # --- growth -----------------------------------------------------------------------------------
-    def _add_experience(self, pose, template_id: int, frame: int, result: FrameResult) -> int:
+    def _add_experience(self, pose, template_id: int, frame: int, result: FrameResult, anchor: bool = False) -> int:
+        """A new experience; ``anchor``: the first of a new part of the graph."""
         index = len(self.templates)
         if index == len(self._poses):   # grow geometrically: amortised O(1) per experience
             self._poses = np.concatenate([self._poses, np.zeros_like(self._poses)])
@@ -503,10 +613,20 @@ class ExperienceMap:
         self.templates.append(template_id)
         self.created.append(frame)
         self._by_template[template_id] = index
-        self.optimizer.add_experience(index, pose)
+        if anchor:
+            part = max(self.anchors) + 1
+            self.anchors[part] = index
+        self.parts.append(part if anchor else (self.parts[self.current] if self.current is not None else 0))
+        self.optimizer.add_experience(index, pose, anchor)
         result.new_experiences.append(index)
         return index
 
     def _add_link(self, link: Link, result: FrameResult) -> None:
         self.links.append(link)
         result.new_links.append(link)
+
+
+def _mahalanobis(a, b, covariance: np.ndarray) -> float:
+    """Mahalanobis distance between two planar poses (their difference in a's frame)."""
+    difference = np.array(between(a, b))
+    return float(math.sqrt(max(difference @ np.linalg.solve(covariance, difference), 0.0)))

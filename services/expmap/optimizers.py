@@ -49,7 +49,8 @@ import bisect
 
 import numpy as np
 
-from services.expmap.graph import MOVED, ExperienceMap, Link, compose, wrap
+from services.common.geometry import compose, wrap
+from services.expmap.graph import MOVED, ExperienceMap, Link
 
 # Published poses refreshed per solve besides those the solver re-eliminated: every solved
 # experience is refreshed at least once every len(map) / REFRESH_PER_SOLVE solves.
@@ -77,7 +78,9 @@ class PoseGraph:
                    "dcs": gtsam.noiseModel.mEstimator.DCS, "huber": gtsam.noiseModel.mEstimator.Huber}
         self._kernel = kernels[p.robust_kernel].Create(p.kernel_width) if p.robust_kernel in kernels else None
         self.covariances: list[np.ndarray] = []   # of each of the map's links, in its order
-        self._prior: tuple[float, float, float] | None = None
+        # The first experience of each part of the graph → its prior (pose, std dev): firm for a part
+        # on its own, weak once closures joined it (it then only keeps the solve determinate).
+        self._priors: dict[int, tuple[tuple[float, float, float], float]] = {}
         self._clear(64)
 
     def _clear(self, capacity: int) -> None:
@@ -136,13 +139,19 @@ class PoseGraph:
         return self.gtsam.ISAM2(params)
 
     # --- building ---------------------------------------------------------------------------------
-    def add_experience(self, index: int, pose) -> None:
+    def add_experience(self, index: int, pose, anchor: bool = False) -> None:
+        """A new experience; the first, or an ``anchor`` (the first of a later part of the graph),
+        is a junction held where its pose is by a prior. (The open chain of the part before it
+        ends at the experience before: a junction.)"""
         self._grow(index + 1)
-        if index == 0:
-            self._prior = tuple(pose)
-            self._bottom[0], self._junctions = 0, [0]
-            self._values.insert(0, self.gtsam.Pose2(*pose))
-            self._factors.append((-1, self._prior_factor()))
+        if index == 0 or anchor:
+            if self._open is not None:
+                self._make_junction(index - 1, end=index)
+            self._priors[index] = (tuple(pose), PRIOR_SIGMA)
+            self._bottom[index] = index
+            self._junctions.append(index)
+            self._values.insert(index, self.gtsam.Pose2(*pose))
+            self._factors.append((-1, self._prior_factor(index)))
 
     def add_link(self, link: Link, covariance: np.ndarray) -> None:
         """An odometric link, from the current experience to the new one it made."""
@@ -160,6 +169,10 @@ class PoseGraph:
             self._make_junction(new - 1)
         self._open, self._tip = (source, new), link.transform
         self._in_frame[new] = link.transform
+
+    def add_refused(self, covariance: np.ndarray) -> None:
+        """A closure link kept as evidence only, refused without a test (it joined nothing)."""
+        self.covariances.append(covariance)
 
     def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, float]:
         """Test a closure against the graph and keep it when it passes; (accepted, test statistic
@@ -211,14 +224,15 @@ class PoseGraph:
         noise = self.gtsam.noiseModel.Gaussian.Covariance(covariance)
         return self._factor(link, noise if self._kernel is None else self.gtsam.noiseModel.Robust.Create(self._kernel, noise))
 
-    def _prior_factor(self):
-        noise = self.gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)
-        return self.gtsam.PriorFactorPose2(0, self.gtsam.Pose2(*self._prior), noise)
+    def _prior_factor(self, key: int):
+        pose, sigma = self._priors[key]
+        return self.gtsam.PriorFactorPose2(key, self.gtsam.Pose2(*pose), self.gtsam.noiseModel.Isotropic.Sigma(3, sigma))
 
     # --- the chains -------------------------------------------------------------------------------
-    def _make_junction(self, key: int, pose: np.ndarray | None = None) -> None:
+    def _make_junction(self, key: int, pose: np.ndarray | None = None, end: int | None = None) -> None:
         """Put an experience into the solver: the chain it is inside is split there (its factor
-        replaced by those of its two parts), and it enters at its present estimate (`pose`)."""
+        replaced by those of its two parts), and it enters at its present estimate (`pose`).
+        `end`: the open chain's end (exclusive) when it is not the map's newest experience."""
         if self._bottom[key] == key:
             return
         pose = self._poses_of(np.array([key]))[0] if pose is None else pose
@@ -233,7 +247,7 @@ class PoseGraph:
         else:                                     # inside the open chain
             top, first = self._open
             self._factors.append((key, self._set_chain(key, top, first)))
-            count = len(self.map)
+            count = len(self.map) if end is None else end
             self._open = (key, key + 1) if key + 1 < count else None
             if self._open is not None:   # what is left of it starts at the new junction
                 self._in_frame[key + 1:count] = _chain_poses(self._step[key + 1:count])
@@ -399,7 +413,8 @@ class PoseGraph:
     # --- rebuilding -------------------------------------------------------------------------------
     def state(self) -> dict[str, np.ndarray]:
         """The solver's part of the map's state: its junctions and their linearisation point, the
-        prior, the links' covariances, the refresh plan."""
+        parts' priors (the first's, `prior`; the later parts', `part_priors`: key, pose, std dev),
+        the links' covariances, the refresh plan."""
         junctions = np.array(self._junctions, dtype=np.int64)
         solved = self.isam.calculateEstimate()
         keys = np.array(solved.keys(), dtype=np.int64)
@@ -410,8 +425,10 @@ class PoseGraph:
         for key in pending:
             pose = self._values.atPose2(key)
             theta[np.searchsorted(junctions, key)] = pose.x(), pose.y(), pose.theta()
+        priors = np.array([(key, *pose, sigma) for key, (pose, sigma) in sorted(self._priors.items())],
+                          dtype=float).reshape(-1, 5)
         return {"junctions": junctions, "theta": theta, "chain_linearized": self._linearized[junctions],
-                "prior": np.array(self._prior),
+                "prior": priors[0, 1:4], "part_priors": priors[1:],
                 "covariances": np.array(self.covariances, dtype=float).reshape(-1, 3, 3),
                 "refresh": np.array(sorted(self._refresh.union(pending)), dtype=np.int64),   # the next update would mark them
                 "refresh_cursor": np.array(self._cursor, dtype=np.int64)}
@@ -432,7 +449,9 @@ class PoseGraph:
                             or junctions[-1] >= count)):
             raise ValueError("solver state of another map")
         self._clear(max(64, count))
-        self._prior = tuple(float(v) for v in state["prior"])
+        self._priors = {0: (tuple(float(v) for v in state["prior"]), PRIOR_SIGMA)}
+        for key, x, y, heading, sigma in state.get("part_priors", np.zeros((0, 5))):
+            self._priors[int(key)] = ((float(x), float(y), float(heading)), float(sigma))
         self.covariances = list(covariances)
         odometric = links[:, 3] == 0
         targets = links[odometric, 1]
@@ -443,26 +462,31 @@ class PoseGraph:
         self._bottom[junctions] = junctions
         junction = self._bottom[:count] >= 0
         # A chain's first experience is made from a junction; the others each from the one before.
+        # A part's first experience is made from none: a junction, with its prior.
         inner = np.flatnonzero(~junction)
-        starts = inner[junction[self._parent[inner]]]
-        if not (junction[self._parent[inner]] | (self._parent[inner] == inner - 1)).all():
-            raise ValueError("solver state of another map")
-        factors = [(0, -1, self._prior_factor())] if count else []   # (newest experience it links, chain's junction, factor)
+        parents = self._parent[inner]
+        first_of_part = self._parent[junctions] < 0
         linearized = np.asarray(state["chain_linearized"], dtype=float).reshape(-1, 3)
-        if len(linearized) != len(junctions):
+        bent = ~np.isnan(linearized[:, 0]) if len(linearized) == len(junctions) else None   # relinearised chains
+        if (parents < 0).any() or not (junction[parents] | (parents == inner - 1)).all() or bent is None or \
+                (bent & first_of_part).any() or (count and set(junctions[first_of_part].tolist()) != set(self._priors)):
             raise ValueError("solver state of another map")
-        for position, key in enumerate(self._junctions[1:], start=1):
+        starts = inner[junction[parents]]
+        chains = {}   # junction → its chain's factor
+        for key in junctions[~first_of_part].tolist():
             parent = int(self._parent[key])
             first = key if junction[parent] else int(starts[np.searchsorted(starts, parent, side="right") - 1])
-            factors.append((key, key, self._set_chain(key, int(self._parent[first]), first)))
-        bent = np.flatnonzero(~np.isnan(linearized[:, 0]))   # chains whose factors were relinearised (factors[i]: junctions[i]'s)
-        for i, factor in zip(bent.tolist(), self._chain_factors_at(junctions[bent], linearized[bent]) if len(bent) else []):
-            factors[i] = (int(junctions[i]), int(junctions[i]), factor)
+            chains[key] = self._set_chain(key, int(self._parent[first]), first)
+        if bent.any():
+            chains.update(zip(junctions[bent].tolist(), self._chain_factors_at(junctions[bent], linearized[bent])))
         if count and not junction[count - 1]:
             first = int(starts[np.searchsorted(starts, count - 1, side="right") - 1])
             self._open = (int(self._parent[first]), first)
             self._in_frame[first:count] = _chain_poses(self._step[first:count])
             self._tip = tuple(float(v) for v in self._in_frame[count - 1])
+        # (newest experience it links, the junction whose chain it is or -1, factor)
+        factors = [(key, -1, self._prior_factor(key)) for key in sorted(self._priors)] if count else []
+        factors += [(key, key, factor) for key, factor in chains.items()]
         for link, covariance in zip(self.map.links, self.covariances):
             if link.loop_closure and link.accepted:
                 if not (self._bottom[link.source] == link.source and self._bottom[link.target] == link.target):
@@ -522,7 +546,8 @@ class PoseGraph:
         """The chains (by their lower junctions, ascending) that end at these junctions or start
         at them."""
         marked = np.fromiter(junctions, dtype=np.int64)
-        every = np.array(self._junctions[1:], dtype=np.int64)
+        every = np.array(self._junctions, dtype=np.int64)
+        every = every[self._top[every] >= 0]   # not the parts' first experiences: no chain ends there
         return every[np.isin(every, marked) | np.isin(self._top[every], marked)]
 
     def _chains_at(self, junctions) -> np.ndarray:
@@ -635,7 +660,7 @@ class Relaxation:
         self._degree = np.zeros(64)
         self.updates = 0   # relaxations since the arrays were (re)built
 
-    def add_experience(self, index: int, pose) -> None:
+    def add_experience(self, index: int, pose, anchor: bool = False) -> None:
         if index >= len(self._degree):
             self._degree = np.concatenate([self._degree, np.zeros_like(self._degree)])
 
@@ -652,6 +677,9 @@ class Relaxation:
     def add_closure(self, link: Link, covariance: np.ndarray) -> tuple[bool, None]:
         self.add_link(link)
         return True, None
+
+    def add_refused(self, covariance: np.ndarray) -> None:
+        pass
 
     def state(self) -> dict[str, np.ndarray]:
         return {}   # the map's poses and links are all there is

@@ -14,6 +14,8 @@ import argparse
 import collections
 import csv
 import logging
+import math
+import shutil
 import threading
 import time
 from dataclasses import asdict
@@ -23,14 +25,18 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapSnapshot, MapUpdate, ViewTemplate
+from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate, Point, ViewTemplate
 from services.common.config import load_config
 from services.common.convert import planar_pose
-from services.common.errors import DataError, PersistenceError
+from services.common.errors import ConfigError, DataError, PersistenceError
+from services.common.journal import SESSION, continue_session
+from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
-from services.expmap.store import CheckpointPolicy, MapStore, Step
+from services.expmap.graph import MOVED, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
+from services.expmap.joiner import FrameJoiner
+from services.expmap.route import shortest_route
+from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, header
 
 log = logging.getLogger(__name__)
 
@@ -82,9 +88,14 @@ class ExpMapConfig(BaseModel):
                                "frames after the last); 0: none.")
     checkpoint_frames: int = Field(50, ge=1, description="Fewest frames between checkpoints.")
     out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
+    map: Path | None = Field(
+        None, description="A results folder whose map to start from (read only): this run is its next session, and its "
+                          "journal (`store`) the whole map.")
+    localize: bool = Field(False, description="With `map`: localise on it only; no experience is stored.")
 
     def params(self) -> MapParams:
-        return MapParams(**self.model_dump(exclude={"store", "out", "checkpoint_updates", "checkpoint_frames"}))
+        return MapParams(**self.model_dump(exclude={"store", "out", "checkpoint_updates", "checkpoint_frames", "map",
+                                                    "localize"}))
 
 
 CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "measurement", "forward", "left", "yaw",
@@ -108,11 +119,11 @@ def closure_row(frame: int, c: ClosureInput, fate: str, residual: float | None) 
             str(fate == "accepted").lower())
 
 
-def closure_input(message: LoopClosure) -> ClosureInput:
-    """The map's view of a confirmed closure: the matched place and the measurement, if any;
-    ``frame`` set when the closure is of an earlier frame than the one that confirmed it."""
+def closure_input(message: LoopClosure, frame: int) -> ClosureInput:
+    """The map's view of a confirmed closure of the map's frame ``frame``: the matched place and
+    the measurement, if any; ``frame`` set when the closure is of an earlier frame."""
     evidence = {"votes": message.votes, "inliers": message.inliers, "geometry_error": message.geometry_error,
-                "frame": message.frame if message.frame != message.header.seq else -1}
+                "frame": message.frame if message.frame != frame else -1}
     pose = message.relative_pose
     if message.measurement == "none" or pose is None or message.covariance is None:
         return ClosureInput(message.matched_template, message.matched_frame, **evidence)
@@ -127,8 +138,12 @@ class ExpMapService(Service):
     def __init__(self, runtime: RuntimeConfig, config: ExpMapConfig, instance: str | None = None):
         super().__init__(runtime, instance)
         self.config = config
+        if config.map is not None and not (config.store.exists() and config.store.stat().st_size):
+            start_session(config)
         self.store = MapStore(config.store, config.params(),
                               CheckpointPolicy(min_steps=config.checkpoint_frames, updates=config.checkpoint_updates))
+        last_session = self.store.sessions[-1][1] if self.store.sessions else None
+        self.base = session_base(last_session[SESSION]) if last_session else 0   # this session's first frame number
         self.lock = threading.Lock()   # map/snapshot reads on a Zenoh thread while frames are applied
         # Results of the last frames, to answer a re-sent frame that is already in the map.
         self.recent: collections.OrderedDict[int, FrameResult] = collections.OrderedDict()
@@ -154,10 +169,8 @@ class ExpMapService(Service):
                      time.perf_counter() - started, len(self.store.steps),
                      f"checkpoint after {restored}, {len(self.store.steps) - restored} replayed" if restored else "all replayed",
                      len(self.map), len(self.map.links))
-        self.poses: dict[int, GridPose] = {}
-        self.views: dict[int, ViewTemplate] = {}
-        self.closures: dict[int, list[LoopClosure]] = {}   # by the seq of the frame that confirmed them
-        self.skipped = 0   # frames with a pose but no view template
+        self.joiner = FrameJoiner()   # the frames' three inputs, joined by seq (joiner.py)
+        self._last_header = None   # of the last map/update or map/pose published
 
     def setup(self) -> None:
         self.subscribe("grid/pose", self.on_grid_pose)
@@ -165,65 +178,63 @@ class ExpMapService(Service):
         # Several closures share a frame's seq (a confirmed run's): the repeated seq is not stale here.
         self.subscribe("loop/closure", self.on_closure, sparse=True, drop_stale=False)
         self.queryable("map/snapshot", self.snapshot)
+        self.queryable("map/route", self.route, parameters=True)
 
     def teardown(self) -> None:
         if self.writer is not None:
             self.writer.join()
         self.store.close()
+        self._publish_final()
+
+    def _publish_final(self) -> None:
+        """On a clean stop: the experiences whose best estimate differs from what was published
+        (frame by frame the map refreshes a bounded number of them), so observers end with the map
+        the run's results hold."""
+        if self._last_header is None or not len(self.map):
+            return
+        final = self.map.final_poses()
+        changed = np.flatnonzero((np.abs(final - self.map.poses) > MOVED).any(axis=1))
+        if len(changed):
+            self._send("map/update", MapUpdate(
+                header=self._last_header, experiences=[
+                    Experience(id=int(i), x=float(final[i, 0]), y=float(final[i, 1]), heading=float(final[i, 2]),
+                               template_id=self.map.templates[i], frame=self.map.created[i]) for i in changed],
+                links=[], experience_count=len(self.map), link_count=len(self.map.links)))
 
     def on_grid_pose(self, message: GridPose) -> None:
         position = message.pose.position
         if max(abs(position.x), abs(position.y)) > MAX_COORDINATE_M or abs(message.heading) > MAX_HEADING_RAD:
             raise MapInputError(f"grid pose ({position.x:.3g}, {position.y:.3g}) m, heading {message.heading:.3g} rad "
                                 f"is beyond {MAX_COORDINATE_M:g} m or {MAX_HEADING_RAD:g} rad")
-        self.poses[message.header.seq] = message
+        self.joiner.pose(message.header.seq, message)
         self._advance()
 
     def on_view(self, message: ViewTemplate) -> None:
-        self.views[message.header.seq] = message
+        self.joiner.view(message.header.seq, message, max(message.loop_closures, int(message.loop_closure)))
         self._advance()
 
     def on_closure(self, message: LoopClosure) -> None:
-        closures = self.closures.setdefault(message.header.seq, [])
-        if (self.map.last_frame is not None and message.header.seq <= self.map.last_frame) or \
-                any(c.frame == message.frame for c in closures):
+        if not self.joiner.closure(message.header.seq, message.frame, message, self._mapped()):
             self.counters.stale += 1   # a frame re-sent after a restart: the map has it, or has it in hand
             return
-        closures.append(message)
         self._advance()
+
+    def _mapped(self) -> int | None:
+        """The last seq of this session the map holds (None: none)."""
+        return None if self.map.last_frame is None else self.map.last_frame - self.base
 
     def _advance(self) -> None:
         """Apply every frame whose inputs are all in, in frame order (the map is deterministic in
         its input order, whatever order the topics' messages arrive in)."""
-        while self.poses:
-            seq = min(self.poses)
-            view = self.views.get(seq)
-            if view is None and any(s > seq for s in self.views):
-                # Views come in frame order, so this frame's never will (loopclosure rejected it):
-                # skip it rather than hold every later frame behind it.
-                self.poses.pop(seq)
-                self.skipped += 1
-                log.warning("expmap: frame %d skipped: no view template for it, later ones arrived", seq)
+        while (joined := self.joiner.next(self._mapped())) is not None:
+            pose, view, frame = joined.pose, joined.view, self.base + joined.seq
+            if joined.in_map:
+                if frame in self.recent:   # already in the map (a re-sent frame after a restart): answer again
+                    self._publish_pose(pose, self.recent[frame])
                 continue
-            if view is None:
-                return
-            in_map = self.map.last_frame is not None and seq <= self.map.last_frame   # re-sent after a restart
-            if not in_map and len(self.closures.get(seq, ())) < max(view.loop_closures, int(view.loop_closure)):
-                return
-            pose = self.poses.pop(seq)
-            self.views.pop(seq)
-            closures = sorted(self.closures.pop(seq, ()), key=lambda c: c.frame)
-            own = next((closure_input(c) for c in closures if c.frame == seq), None)
-            earlier = tuple(closure_input(c) for c in closures if c.frame != seq)
-            for stale in [s for s in self.views if s < seq]:
-                del self.views[stale]
-            for stale in [s for s in self.closures if s < seq]:
-                del self.closures[stale]
-            if in_map:
-                if seq in self.recent:   # already in the map (a re-sent frame after a restart): answer again
-                    self._publish_pose(pose, self.recent[seq])
-                continue
-            step = Step(seq, pose.header.stamp.to_seconds(), (pose.pose.position.x, pose.pose.position.y, pose.heading),
+            own = next((closure_input(c, frame) for c in joined.closures if c.frame == frame), None)
+            earlier = tuple(closure_input(c, frame) for c in joined.closures if c.frame != frame)
+            step = Step(frame, pose.header.stamp.to_seconds(), (pose.pose.position.x, pose.pose.position.y, pose.heading),
                         view.template_id, own, tuple(pose.increment_covariance) if pose.increment_covariance is not None
                         else None, earlier)
             self.store.append(step)   # on disk before anything is published
@@ -231,8 +242,13 @@ class ExpMapService(Service):
                 result = step.apply(self.map)
             self._remember(result)
             if self.csv_path is not None and result.decisions:
-                self._write_closures([closure_row(c.frame if c.frame >= 0 else seq, c, fate, residual)
+                self._write_closures([closure_row(c.frame if c.frame >= 0 else frame, c, fate, residual)
                                       for c, fate, residual in result.decisions], "a")
+            for part in result.joined:
+                log.info("expmap: frame %d joins part %d of the map to its frame", frame, part)
+            if result.placed or result.lost:
+                log.warning("expmap: frame %d: %s", frame, "localised on the map" if result.placed else
+                            f"lost: no closure accepted for {self.map.localizer.params.lost_distance:g} m; searching")
             self._publish(pose, result)
             if self.store.checkpoint_due(self.map):
                 self._checkpoint()
@@ -256,6 +272,7 @@ class ExpMapService(Service):
             log.warning("%s: cannot write the map checkpoint (%s)", self.store.path, error.strerror or error)
 
     def _publish(self, pose: GridPose, result: FrameResult) -> None:
+        self._last_header = pose.header.model_copy(update={"frame_id": "map"})
         if result.new_experiences or result.new_links or result.moved:
             changed = sorted(set(result.new_experiences) | set(result.moved))
             self.publish("map/update", MapUpdate(
@@ -269,7 +286,7 @@ class ExpMapService(Service):
         x, y, heading = result.pose
         self.publish("map/pose", MapPose(header=pose.header.model_copy(update={"frame_id": "map"}),
                                          pose=planar_pose(x, y, heading), heading=heading,
-                                         experience_id=result.experience))
+                                         experience_id=max(result.experience, 0), localized=result.localized))
 
     def _remember(self, result: FrameResult) -> None:
         self.recent[result.frame] = result
@@ -286,6 +303,17 @@ class ExpMapService(Service):
                                         for i, (x, y, heading) in enumerate(state.poses)],
                            links=[link_message(link) for link in state.links])
 
+    def route(self, parameter) -> MapRoute:
+        """Called on a Zenoh thread: the shortest route between the points the query's parameters
+        `from=X,Y` and `to=X,Y` name (map frame, m); also published on map/route for the viewer."""
+        start, goal = (parse_point(parameter(name), name) for name in ("from", "to"))
+        with self.lock:
+            state: MapState = self.map.snapshot()
+        route = shortest_route(state.poses, state.links, start, goal)
+        message = route_message(route, start, goal, self.header(state.frame or 0, 0.0, "map"))
+        self._send("map/route", message)
+        return message
+
     def _write_closures(self, rows: list[tuple], mode: str) -> None:
         try:
             with open(self.csv_path, mode, newline="") as handle:
@@ -299,9 +327,37 @@ class ExpMapService(Service):
     def extra_counters(self) -> dict[str, float]:
         closures = self.map.closures
         return {**super().extra_counters(), "experiences": len(self.map), "links": len(self.map.links),
-                "frames_in_map": len(self.map.frames), "frames_skipped": self.skipped,
+                "frames_in_map": len(self.map.frames), "frames_skipped": self.joiner.skipped,
                 "closures_accepted": closures["accepted"], "closures_rejected": closures["rejected"],
                 "closures_unmeasured": closures["unmeasured"]}
+
+
+def start_session(config: ExpMapConfig) -> None:
+    """Begin the session's journal as the saved map's (checked, read only) and copy its checkpoint."""
+    saved = map_files(config.map)["map"]
+    continue_session(saved, config.store, header(config.params()), config.localize, config.map)
+    if checkpoint_path(saved).exists():
+        try:
+            shutil.copyfile(checkpoint_path(saved), checkpoint_path(config.store))
+        except OSError as error:   # the journal holds the map: a restart replays all of it
+            log.warning("%s: cannot copy the map's checkpoint (%s)", checkpoint_path(saved), error.strerror or error)
+
+
+def parse_point(text: str | None, name: str) -> tuple[float, float]:
+    """A point X,Y of a route query's parameter ``name``."""
+    try:
+        x, y = (float(v) for v in (text or "").split(","))
+    except ValueError:
+        raise ConfigError(f"map/route: parameter {name!r} must be X,Y in metres, got {text!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ConfigError(f"map/route: parameter {name!r} must be finite, got {text!r}")
+    return x, y
+
+
+def route_message(route, start, goal, header) -> MapRoute:
+    return MapRoute(header=header, start=Point(x=start[0], y=start[1]), goal=Point(x=goal[0], y=goal[1]),
+                    experiences=route.experiences, poses=[planar_pose(*pose) for pose in route.poses],
+                    length=route.length, found=route.found)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -309,6 +365,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", type=Path, help="map log file (default experience_map.log); a restart resumes from it")
     parser.add_argument("--out", type=Path, help="folder for loop_closures.csv")
     add_map_arguments(parser)
+    add_map_reuse_arguments(parser)
 
 
 def add_map_arguments(parser: argparse.ArgumentParser) -> None:
@@ -323,5 +380,7 @@ def add_map_arguments(parser: argparse.ArgumentParser) -> None:
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(ExpMapConfig, "expmap", preset=args.preset, config_file=args.config,
                          overrides={"store": args.store, "out": args.out, "closure": args.closure,
-                                    "optimizer": args.map_optimizer})
+                                    "optimizer": args.map_optimizer, "map": args.map, "localize": args.localize})
+    if config.localize and config.map is None:
+        raise ConfigError("[expmap] localize: localisation needs a saved map (--map DIR)")
     return ExpMapService(runtime, config, args.instance).run()

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.common.journal import Journal, JournalError
+from services.common.journal import SESSION, Journal, JournalError
 from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams
 
 log = logging.getLogger(__name__)
@@ -105,12 +105,29 @@ class CheckpointPolicy:
         return 0 < self.updates <= experience_map.optimizer.updates and steps_since >= self.min_steps
 
 
+
+
+def sessions_of(records: list[dict]) -> list[tuple[int, dict]]:
+    """The session records of a journal's records (header excluded), each with the number of
+    steps before it: the frames after it are that session's (services/common/layout.py)."""
+    sessions, count = [], 0
+    for record in records:
+        if SESSION in record:
+            sessions.append((count, record))
+        elif CHECKPOINT not in record:
+            count += 1
+    return sessions
+
+
 def parse_records(records: list[dict]) -> tuple[list[Step], list[int]]:
     """The steps of a journal's records (header excluded) and its checkpoints (how many steps
-    each follows); ValueError naming the line of a record that is neither."""
+    each follows), its session records aside (sessions_of); ValueError naming the line of a
+    record that is none of them."""
     steps, checkpoints = [], []
     for number, record in enumerate(records, start=2):
         try:
+            if SESSION in record:
+                continue
             if CHECKPOINT in record:
                 if record[CHECKPOINT] != len(steps):
                     raise ValueError
@@ -127,11 +144,16 @@ def checkpoint_path(journal: Path) -> Path:
 
 
 def replay(experience_map: ExperienceMap, steps: list[Step], checkpoints: list[int], start: int = 0,
-           each: Callable[[Step, FrameResult], None] | None = None) -> None:
-    """Apply steps[start:], rebasing the map after each checkpoint's step as the live map was;
-    `each` sees every step applied and its result."""
+           each: Callable[[Step, FrameResult], None] | None = None, sessions: list[tuple[int, dict]] = ()) -> None:
+    """Apply steps[start:], rebasing the map after each checkpoint's step as the live map was and
+    starting each session where it began; `each` sees every step applied and its result."""
     marks = {n for n in checkpoints if n > start}
-    for index in range(start, len(steps)):
+    begins = {index: record for index, record in sessions if index >= start}
+    for index in range(start, len(steps) + 1):
+        if index in begins:
+            experience_map.start_session(localize=bool(begins[index].get("localize")))
+        if index == len(steps):
+            break
         result = steps[index].apply(experience_map)
         if each is not None:
             each(steps[index], result)
@@ -183,13 +205,14 @@ def load_checkpoint(path: Path, params: MapParams, steps: list[Step], checkpoint
 
 
 def rebuild(path: Path, params: MapParams, steps: list[Step], checkpoints: list[int],
-            each: Callable[[Step, FrameResult], None] | None = None) -> tuple[ExperienceMap, int, dict[str, np.ndarray]]:
+            each: Callable[[Step, FrameResult], None] | None = None, sessions: list[tuple[int, dict]] = ()
+            ) -> tuple[ExperienceMap, int, dict[str, np.ndarray]]:
     """The map a journal describes: from its checkpoint and the steps after it when there is a
     usable one, else from all its steps; how many steps the checkpoint covered (0: none); the
     service's arrays the checkpoint holds. `each` sees each step replayed."""
     restored = load_checkpoint(Path(path), params, steps, checkpoints)
     experience_map, start, extras = restored if restored is not None else (ExperienceMap(params), 0, {})
-    replay(experience_map, steps, checkpoints, start, each)
+    replay(experience_map, steps, checkpoints, start, each, sessions)
     return experience_map, start, extras
 
 
@@ -202,6 +225,7 @@ class MapStore:
         self.journal = Journal(path, header(params))
         try:
             self.steps, self.checkpoints = parse_records(self.journal.records)
+            self.sessions = sessions_of(self.journal.records)
         except ValueError as error:
             self.journal.close()
             raise JournalError(f"{self.path}: {error}") from None
@@ -233,4 +257,4 @@ class MapStore:
                 ) -> tuple[ExperienceMap, int, dict[str, np.ndarray]]:
         """The map the stored steps describe (from the checkpoint when usable), the steps the
         checkpoint covered, and the arrays the service saved with it."""
-        return rebuild(self.path, self.params, self.steps, self.checkpoints, each)
+        return rebuild(self.path, self.params, self.steps, self.checkpoints, each, self.sessions)

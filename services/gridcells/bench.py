@@ -26,6 +26,7 @@ import time
 import numpy as np
 import scipy.fft
 
+from services.common.settings import CommandParser
 from services.gridcells.calibration import CalibrationGrid, LagInverter, check_flows, check_velocities, flow_table, lag_components
 from services.gridcells.decoders import DECODERS, decode_paper_bruteforce, decode_subpixel
 from services.gridcells.heading import HeadDirectionRing, RingHeading, ring_calibration
@@ -260,7 +261,7 @@ def print_sweeps() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench gridcells", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = CommandParser(prog="gridslam bench gridcells", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", default="64,128,256", help="comma-separated network sizes n")
     parser.add_argument("--repeats", type=int, default=40, help="frames timed per configuration")
     parser.add_argument("--slow-repeats", type=int, default=8, help="frames timed for the paper decoders")

@@ -10,7 +10,7 @@ in columns and rows since the previous frame; the pose moves by the ego-motion's
 shift gives no step.
 
 Conventions: body frame x forward, y left, yaw counter-clockwise positive (REP 103); world
-frame x, y with heading measured from world +x, wrapped to (−π, π].
+frame x, y with heading measured from world +x, wrapped to [−π, π).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from services.common.geometry import wrap
 from services.gridcells.calibration import CalibrationGrid, FlowTable, LagInverter, flow_table
 from services.gridcells.decoders import DECODERS, SubpixelReader
 from services.gridcells.heading import RingHeading
@@ -72,10 +73,6 @@ class GridStep:
     saturated: bool  # the network was driven beyond its linear range or the shift hit the search edge
 
 
-def _wrap(angle: float) -> float:
-    return math.atan2(math.sin(angle), math.cos(angle))
-
-
 def _finite(**values: float) -> None:
     for name, value in values.items():
         if value is not None and not math.isfinite(value):
@@ -94,7 +91,7 @@ class PathIntegrator:
 
     def __init__(self, heading0: float = 0.0):
         _finite(heading0=heading0)
-        self._pose = Pose2D(0.0, 0.0, _wrap(heading0))
+        self._pose = Pose2D(0.0, 0.0, float(wrap(heading0)))
         self.frames = 0
         self.saturations = 0
 
@@ -105,7 +102,7 @@ class PathIntegrator:
     def step(self, forward: float, left: float, yaw: float) -> GridStep:
         """One frame of body-frame increments (input units and rad per frame)."""
         _finite(forward=forward, left=left, yaw=yaw)
-        heading = _wrap(self._pose.heading + yaw)
+        heading = float(wrap(self._pose.heading + yaw))
         vx, vy = _body_to_world(forward, left, heading)
         return self._advance(vx, vy, heading)
 
@@ -113,7 +110,7 @@ class PathIntegrator:
         """One frame of world-frame displacement (the authors' network input); ``heading``,
         when given, becomes the pose's heading."""
         _finite(vx=vx, vy=vy, heading=heading)
-        return self._advance(vx, vy, self._pose.heading if heading is None else _wrap(heading))
+        return self._advance(vx, vy, self._pose.heading if heading is None else float(wrap(heading)))
 
     def _advance(self, vx: float, vy: float, heading: float) -> GridStep:
         raise NotImplementedError

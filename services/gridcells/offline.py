@@ -19,10 +19,11 @@ from services.common.errors import ConfigError
 from services.evaluation import metrics as evaluation
 from services.evaluation.plots import plot_heatmaps, plot_series, plot_trajectories
 from services.evaluation.results import results_dir, write_config, write_json
-from services.evaluation.trajectory import Trajectory, wrap_angle, write_tum
+from services.common.geometry import wrap
+from services.evaluation.trajectory import Trajectory, write_tum
 from services.gridcells.gridcode import GridCode
 from services.gridcells.integrator import DECODER_NAMES, DeadReckoning, GridCellIntegrator, auto_velocity_scale
-from services.gridcells.motion_io import MotionInput, add_noise, load_motion
+from services.evaluation.motion_io import MotionInput, add_noise, load_motion
 from services.gridcells.network import GridNetwork, NetworkParams
 from services.gridcells.simulation import (
     FiringMap,
@@ -119,11 +120,11 @@ def _drive(integrator, motion: MotionInput, name: str) -> IntegrationRun:
     c, s = math.cos(-rotation), math.sin(-rotation)
     x = x0 + c * poses[:, 0] - s * poses[:, 1]
     y = y0 + s * poses[:, 0] + c * poses[:, 1]
-    trajectory = Trajectory.from_planar(motion.stamps, x, y, wrap_angle(poses[:, 2] - rotation))
+    trajectory = Trajectory.from_planar(motion.stamps, x, y, wrap(poses[:, 2] - rotation))
     gridcode = None
     if code is not None:
         gx, gy = x0 + c * coded.real - s * coded.imag, y0 + s * coded.real + c * coded.imag
-        gridcode = Trajectory.from_planar(motion.stamps, gx, gy, wrap_angle(poses[:, 2] - rotation))
+        gridcode = Trajectory.from_planar(motion.stamps, gx, gy, wrap(poses[:, 2] - rotation))
     return IntegrationRun(name, trajectory, shifts, int(integrator.saturations), seconds, gridcode)
 
 
@@ -210,7 +211,7 @@ def direction_errors(est: Trajectory, deadreckoning: Trajectory) -> dict:
                    "direction_mean_deg": float(np.degrees(angle.mean())),
                    "direction_weighted_rms_deg": float(np.degrees(np.sqrt(np.sum((length * angle) ** 2) / np.sum(length**2)))),
                    "step_ratio_mean": float(np.mean(np.hypot(*step_est[moved].T) / np.hypot(*step_dr[moved].T)))}
-    heading = np.degrees(np.abs(wrap_angle(est.planar()[2] - deadreckoning.planar()[2])))
+    heading = np.degrees(np.abs(wrap(est.planar()[2] - deadreckoning.planar()[2])))
     result |= {"heading_difference_end_deg": float(heading[-1]), "heading_difference_max_deg": float(heading.max())}
     return result
 

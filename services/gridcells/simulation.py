@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
+from services.common.geometry import wrap
+
 
 @dataclass(frozen=True)
 class WalkParams:
@@ -50,7 +52,7 @@ class Walk:
         """(N, 3) forward, left, yaw per frame: the agent moves along its heading, so the
         step is all forward; row 0 is zero. The yaw is the heading change into the frame."""
         steps = np.vstack([[0.0, 0.0], np.diff(self.positions, axis=0)])
-        yaw = np.concatenate([[0.0], _wrap(np.diff(self.heading))])
+        yaw = np.concatenate([[0.0], wrap(np.diff(self.heading))])
         return np.column_stack([np.hypot(steps[:, 0], steps[:, 1]), np.zeros(len(self)), yaw])
 
     def path_length(self) -> float:
@@ -59,10 +61,6 @@ class Walk:
     def head(self, n_frames: int) -> Walk:
         """The first `n_frames` frames."""
         return Walk(self.stamps[:n_frames], self.positions[:n_frames], self.heading[:n_frames])
-
-
-def _wrap(angle):
-    return (np.asarray(angle) + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def random_walk(n_frames: int, seed: int = 0, params: WalkParams = WalkParams()) -> Walk:
@@ -100,7 +98,7 @@ def random_walk(n_frames: int, seed: int = 0, params: WalkParams = WalkParams())
         positions[k] = target
         heading[k] = direction
     stamps = np.arange(n_frames) * dt
-    return Walk(stamps, positions, _wrap(heading))
+    return Walk(stamps, positions, wrap(heading))
 
 
 # --- firing maps and gridness -----------------------------------------------------------------

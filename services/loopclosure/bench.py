@@ -21,7 +21,6 @@ same matched frame).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 from dataclasses import replace
@@ -31,6 +30,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from services.common.config import load_config
+from services.common.settings import CommandParser
 from services.loopclosure.service import LoopClosureConfig
 from services.loopclosure.templates import TemplateParams, ViewTemplates
 
@@ -120,7 +120,7 @@ def recall(sequences: list[str]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench loopclosure", description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog="gridslam bench loopclosure", description=__doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="nubot", help="loopclosure preset for the template size and shifts (default nubot)")
     parser.add_argument("--sizes", default="1000,10000,50000", help="comma-separated numbers of stored templates")
     parser.add_argument("--frames", type=int, default=15, help="frames observed per size (the median is reported)")

@@ -8,7 +8,9 @@ place's features, times the word's idf), L1-normalised. Places are found through
 index — per word, the places that hold it and their weights — and scored against the current
 frame's bag by the L1 score of DBoW2, s(v, w) = 1 − ½‖v − w‖₁, which for two normalised
 non-negative vectors is Σ min(vᵢ, wᵢ) over the words they share: only the postings of the
-frame's own words are read, so scoring touches a small part of a large map.
+frame's own words are read, so scoring touches a small part of a large map; and at most
+`max_postings` of them, the rarest words' first, so that its cost stops growing beyond a map of
+about 25k places.
 
 Per frame (`observe`): the `candidates` best-scoring places stored at least `recent_frames`
 frames ago and the `recent_candidates` best of the recent ones are verified geometrically by the
@@ -43,6 +45,9 @@ class BowParams:
     place_inliers: int = setting(60, ge=8, help="Matches with a recent place for the frame to be still at it "
                                                "(fewer: the frame is a new place).")
     vocabulary: str = setting("", help="Vocabulary file (gridslam vocabulary); empty: the one shipped with gridslam.")
+    max_postings: int = setting(50_000, ge=1000, help="Postings of the inverted index read per frame at most, the "
+                                "frame's rarest words first (a frame's scoring stops growing with the map; the words "
+                                "skipped are the map's commonest). A map of 1000 places needs about 2000.")
 
     def check(self) -> None:
         check(self)
@@ -90,10 +95,19 @@ class InvertedIndex:
             self._counts[word] = n + 1
         self.postings += len(bag.words)
 
-    def scores(self, bag: BagVector, places: int) -> np.ndarray:
-        """The L1 score of every place against ``bag`` (0 for a place sharing no word)."""
+    def scores(self, bag: BagVector, places: int, max_postings: int | None = None) -> np.ndarray:
+        """The L1 score of every place against ``bag`` (0 for a place sharing no word), from at
+        most ``max_postings`` postings: the bag's words with the fewest places first, the
+        commonest left out once the budget is spent (impact-ordered search, as text retrieval
+        does it: those words add a little to most places' scores and tell them apart least)."""
+        words, weights = bag.words, bag.weights
+        counts = self._counts[words]
+        if max_postings is not None and int(counts.sum()) > max_postings:
+            rarest = np.argsort(counts, kind="stable")
+            kept = np.sort(rarest[:int(np.searchsorted(np.cumsum(counts[rarest]), max_postings, side="right"))])
+            words, weights = words[kept], weights[kept]
         ids, contributions = [], []
-        for word, weight in zip(bag.words.tolist(), bag.weights.tolist()):
+        for word, weight in zip(words.tolist(), weights.tolist()):
             n = int(self._counts[word])
             if n:
                 ids.append(self._places[word][:n])
@@ -151,7 +165,7 @@ class BagOfWords:
         count = len(self.frames)
         if count == 0:
             return Recognition(-1, 0, 0.0, (), -1, 0)
-        scores = self.index.scores(bag, count)
+        scores = self.index.scores(bag, count, self.params.max_postings)
         old = bisect.bisect_right(self.frames, frame - self.recent_frames)   # places are stored in frame order
         chosen = _best(scores[:old], self.params.candidates)
         recent = _best(scores[old:], self.params.recent_candidates) + old

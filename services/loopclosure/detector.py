@@ -1,6 +1,6 @@
 """The loop-closure detector, a pure core: place recognition, the paper's consistency rule, and the
 geometry of a confirmed closure, frame by frame. The loopclosure service and the offline map
-build (services/expmap/evidence.py) drive the same object.
+build (services/expmap/offline.py) drive the same object.
 
 Per frame: the view is recognised (`place_recognition`, one of PLACE_RECOGNITIONS):
 
@@ -157,13 +157,24 @@ class LoopClosureDetector:
         # earlier frames' measurements from here.
         self._measured: dict[int, Measurement] = {}
         self.counts = {"closures": 0, "geometry_failed": 0}
+        self.session = 0
+        self.localize = False   # a localisation session: no place is stored
+
+    def start_session(self, session: int, localize: bool = False) -> None:
+        """The frames from here on are session ``session`` of the map (their numbers count from
+        services.common.layout.session_base(session)): votes do not run across sessions, and a
+        localisation stores no place."""
+        self.rule = ConsistencyRule(self.rule.params)
+        self._measured.clear()
+        self.places.start_session()
+        self.session, self.localize = session, localize
 
     def observe(self, seq: int, left: np.ndarray, right: np.ndarray | None = None,
                 camera: Camera | None = None) -> Observation:
         """Recognise one frame (grey or BGR images; `right` for stereo), keep its keyframe when it
         is a new place, measure its possible closures, and return the closures the rule confirms."""
         frame = _Frame(seq, left, right, camera, self.geometry)
-        recognised: Recognised = self.places.observe(seq, frame, self.keyframes.get)
+        recognised: Recognised = self.places.observe(seq, frame, self.keyframes.get, learn=not self.localize)
         match, journal_view = recognised.match, recognised.journal_view
         if match.is_new:
             keyframe = None

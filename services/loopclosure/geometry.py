@@ -283,7 +283,6 @@ class ClosureGeometry:
         self._query_orb = cv2.ORB_create(nfeatures=3 * params.query_features, **detect)
         self._stereo_track = TrackParams(params.stereo_window_px, params.stereo_pyramid_levels,
                                          params.stereo_forward_backward_px)
-        self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
 
     # -- keyframes
 
@@ -389,20 +388,19 @@ class ClosureGeometry:
         candidates = np.flatnonzero(usable)
         if len(candidates) == 0:
             return np.empty(0, int), np.empty(0, int)
-        pairs = self._matcher.knnMatch(stored[candidates], current, k=2)
-        first, second, distance = [], [], []
-        for pair in pairs:
-            if not pair:
-                continue
-            best = pair[0]
-            if best.distance > p.max_distance or (len(pair) > 1 and best.distance >= p.ratio * pair[1].distance):
-                continue
-            first.append(candidates[best.queryIdx])
-            second.append(best.trainIdx)
-            distance.append(best.distance)
-        if not first:
+        # The two nearest current features of each usable keyframe feature (OpenCV's brute-force
+        # search, as BFMatcher's knnMatch, without a DMatch object per pair).
+        k = min(2, len(current))
+        if k == 0:
             return np.empty(0, int), np.empty(0, int)
-        first, second, distance = np.array(first), np.array(second), np.array(distance)
+        distances, nearest = cv2.batchDistance(stored[candidates], current, cv2.CV_32S, normType=cv2.NORM_HAMMING, K=k)
+        best = distances[:, 0]
+        good = best <= p.max_distance
+        if k > 1:
+            good &= best < p.ratio * distances[:, 1]
+        first, second, distance = candidates[good], nearest[good, 0].astype(int), best[good]
+        if len(first) == 0:
+            return np.empty(0, int), np.empty(0, int)
         order = np.lexsort((distance, second))
         keep = order[np.r_[True, second[order][1:] != second[order][:-1]]]   # closest per current feature
         return first[keep], second[keep]

@@ -16,7 +16,6 @@
 
 from __future__ import annotations
 
-import argparse
 import math
 import statistics
 import time
@@ -25,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.common.settings import CommandParser
 from services.loopclosure.geometry import ClosureGeometry
 from services.source.frames import Camera
 from services.source.synthetic import SyntheticWorld, WorldConfig, default_camera
@@ -182,7 +182,7 @@ def timing(geometry: ClosureGeometry, repeats: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench geometry", description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog="gridslam bench geometry", description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", default="0,1,2,3", help="synthetic worlds (comma-separated seeds)")
     parser.add_argument("--pairs", type=int, default=24, help="revisit pairs per world (half as many unrelated pairs)")
     parser.add_argument("--repeats", type=int, default=30, help="timed calls per case (the median is reported)")

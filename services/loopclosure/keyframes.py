@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import shutil
 import struct
 import zlib
 from pathlib import Path
@@ -166,6 +167,18 @@ class KeyframeStore:
         self._cache = collections.OrderedDict((k, v) for k, v in self._cache.items() if k < count)
         return len(dropped)
 
+    def copy_from(self, path: Path) -> None:
+        """Take the keyframes of another store (a saved map's, checked with check_file) as this
+        one's, replacing what it holds."""
+        self._file.close()
+        try:
+            shutil.copyfile(path, self.path)
+            self._file = open(self.path, "a+b", buffering=0)
+        except OSError as error:
+            raise JournalError(f"{self.path}: cannot copy {path} ({error.strerror or error})") from None
+        self._cache.clear()
+        self._size = self._load()
+
     def close(self) -> None:
         if self._file.closed:
             return
@@ -220,27 +233,7 @@ class KeyframeStore:
         return end
 
     def _scan(self, *, verify: bool):
-        """(payload offset, template id, payload length) of every intact record, in file order.
-        With ``verify`` the checksums are checked: a bad record followed by more data is an
-        error naming its byte offset; a bad or incomplete last record ends the scan (torn)."""
-        size = os.fstat(self._file.fileno()).st_size
-        position = _FILE_HEADER.size
-        while position + _RECORD.size <= size:
-            self._file.seek(position)
-            length, crc, template_id = _RECORD.unpack(self._file.read(_RECORD.size))
-            end = position + _RECORD.size + length
-            if length > MAX_RECORD:
-                raise JournalError(f"{self.path}: byte {position}: keyframe record is damaged (length {length})")
-            if end > size:
-                return   # torn: the record runs past the end of the file
-            if verify:
-                payload = self._file.read(length)
-                if crc != _crc(template_id, payload):
-                    if end == size:
-                        return   # torn: the last record's bytes did not all reach the disk
-                    raise JournalError(f"{self.path}: byte {position}: keyframe record is damaged (checksum mismatch)")
-            yield position + _RECORD.size, template_id, length
-            position = end
+        return _scan(self._file, self.path, verify=verify)
 
     def _rewrite(self, records: list[tuple[int, int, int]]) -> None:
         """Replace the file by one holding ``records`` (in order), atomically."""
@@ -255,3 +248,46 @@ class KeyframeStore:
         os.replace(temporary, self.path)
         self._file.close()
         self._file = open(self.path, "a+b", buffering=0)
+
+
+def _scan(file, path: Path, *, verify: bool):
+    """(payload offset, template id, payload length) of every intact record, in file order.
+    With ``verify`` the checksums are checked: a bad record followed by more data is an
+    error naming its byte offset; a bad or incomplete last record ends the scan (torn)."""
+    size = os.fstat(file.fileno()).st_size
+    position = _FILE_HEADER.size
+    while position + _RECORD.size <= size:
+        file.seek(position)
+        length, crc, template_id = _RECORD.unpack(file.read(_RECORD.size))
+        end = position + _RECORD.size + length
+        if length > MAX_RECORD:
+            raise JournalError(f"{path}: byte {position}: keyframe record is damaged (length {length})")
+        if end > size:
+            return   # torn: the record runs past the end of the file
+        if verify:
+            payload = file.read(length)
+            if crc != _crc(template_id, payload):
+                if end == size:
+                    return   # torn: the last record's bytes did not all reach the disk
+                raise JournalError(f"{path}: byte {position}: keyframe record is damaged (checksum mismatch)")
+        yield position + _RECORD.size, template_id, length
+        position = end
+
+
+def check_file(path: Path) -> int:
+    """Read a keyframe store without changing it and check every record (a saved map's, before
+    it is used): the number of keyframes; JournalError naming the file and what is wrong."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as file:
+            head = file.read(_FILE_HEADER.size)
+            if len(head) < _FILE_HEADER.size or _FILE_HEADER.unpack(head)[0] != MAGIC:
+                raise JournalError(f"{path}: not a keyframe store (no {MAGIC.decode()} header)")
+            version = _FILE_HEADER.unpack(head)[1]
+            if version != VERSION:
+                raise JournalError(f"{path}: keyframe store version {version}, this build reads version {VERSION}")
+            return len({template_id for _, template_id, _ in _scan(file, path, verify=True)})
+    except FileNotFoundError:
+        raise JournalError(f"{path}: no such keyframe store") from None
+    except OSError as error:
+        raise JournalError(f"{path}: cannot read ({error.strerror})") from None

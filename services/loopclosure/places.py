@@ -1,8 +1,10 @@
 """The place recognisers behind the loop-closure detector, one interface over three models:
 
-    observe(seq, frame, keyframe_of) -> Recognised   which place the frame is at, its possible closures
+    observe(seq, frame, keyframe_of, learn) -> Recognised   which place the frame is at, its possible closures
+                                                     (without ``learn``, a localisation, it stores no place)
     store(match, keyframe) -> dict | None            a new place's keyframe is made: what to journal
     replay(seq, match, journal_view)                 rebuild what a journaled frame did
+    start_session()                                  later frames are another session's
     len()                                            places stored
 
 `frame` gives the frame's images (`left`, `right`, `camera`) and its ORB features
@@ -61,14 +63,17 @@ class ScanlinePlaces:
     def __len__(self) -> int:
         return len(self.templates)
 
-    def observe(self, seq: int, frame, keyframe_of) -> Recognised:
-        match = self.templates.observe(frame.left, seq)
+    def observe(self, seq: int, frame, keyframe_of, learn: bool = True) -> Recognised:
+        match = self.templates.observe(frame.left, seq, learn)
         votes = () if match.is_new else ((match.template_id, match.matched_frame),)
         candidate = (match.nearest_frame, -match.distance) if match.nearest_frame >= 0 else None
         return Recognised(match, votes, None, candidate)
 
     def store(self, match: ViewMatch, keyframe: Keyframe | None) -> dict:
         return {"patch": _b64(self.templates.patch(match.template_id))}
+
+    def start_session(self) -> None:
+        pass
 
     def replay(self, seq: int, match: ViewMatch, view: dict | None) -> None:
         if match.is_new:
@@ -88,7 +93,7 @@ class BowPlaces:
     def __len__(self) -> int:
         return len(self.bow)
 
-    def observe(self, seq: int, frame, keyframe_of) -> Recognised:
+    def observe(self, seq: int, frame, keyframe_of, learn: bool = True) -> Recognised:
         features = frame.features
         recognition = self.bow.observe(seq, self.bow.bag(features.descriptors),
                                        lambda place: _verify(frame.geometry, keyframe_of(place), features))
@@ -98,14 +103,20 @@ class BowPlaces:
         if recognition.place >= 0:
             place = recognition.place
             match = ViewMatch(place, False, max(0.0, 1.0 - recognition.score), 0.0, frames[place], 0)
-        else:
+        elif learn or not frames:
             match = ViewMatch(len(frames), True, 0.0, 0.0, seq, 0)
+        else:   # a localisation stores nothing: the frame is at the place it looks most like, if any
+            place = max(recognition.best_old, 0)
+            match = ViewMatch(place, False, 1.0, 0.0, frames[place], 0)
         return Recognised(match, votes, None, candidate)
 
     def store(self, match: ViewMatch, keyframe: Keyframe) -> dict:
         bag = self.bow.bag(keyframe.descriptors)
         self.bow.add(bag, match.matched_frame)
         return {"words": _b64(bag.words.astype(np.uint32)), "weights": _b64(bag.weights)}
+
+    def start_session(self) -> None:
+        pass
 
     def replay(self, seq: int, match: ViewMatch, view: dict | None) -> None:
         if match.is_new:
@@ -135,9 +146,9 @@ class SequencePlaces:
     def __len__(self) -> int:
         return len(self.sequences)
 
-    def observe(self, seq: int, frame, keyframe_of) -> Recognised:
+    def observe(self, seq: int, frame, keyframe_of, learn: bool = True) -> Recognised:
         image = self.sequences.image_of(frame.left)
-        found = self.sequences.observe(seq, image)
+        found = self.sequences.observe(seq, image, learn)
         frames = self.sequences.frames
         if found.place >= 0:
             match = ViewMatch(found.place, False, found.place_difference, 0.0, frames[found.place], 0)
@@ -149,6 +160,9 @@ class SequencePlaces:
 
     def store(self, match: ViewMatch, keyframe: Keyframe | None) -> None:
         return None   # the frame's image (its journal view) is the place
+
+    def start_session(self) -> None:
+        self.sequences.start_session()
 
     def replay(self, seq: int, match: ViewMatch, view: dict | None) -> None:
         self.sequences.replay(seq, _unb64(view["image"], np.uint8, self.sequences.image_shape), match.is_new)

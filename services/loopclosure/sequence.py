@@ -104,14 +104,15 @@ class Sequences:
                 out[y:y + p, x:x + p] = (block - block.mean()) / std if std > 1e-3 else 0.0
         return out.ravel()
 
-    def observe(self, frame: int, small: np.ndarray) -> SequenceMatch:
-        """One frame's small image (image_of): stored as a new place or not, and its vote."""
+    def observe(self, frame: int, small: np.ndarray, learn: bool = True) -> SequenceMatch:
+        """One frame's small image (image_of): stored as a new place or not (never without
+        ``learn``, a localisation: it is then at the last place), and its vote."""
         vector = self.normalised(small)
         self._index_old(frame)
         self._recent.appendleft(vector)
         vote, best, best_difference = self._search()
         difference = float(np.abs(self._images[len(self.frames) - 1] - vector).mean()) if self.frames else np.inf
-        place = len(self.frames) - 1 if difference <= self.params.new_place else -1
+        place = len(self.frames) - 1 if difference <= self.params.new_place or not learn else -1
         if place < 0:
             self._add(vector, frame)
         return SequenceMatch(place, difference if np.isfinite(difference) else 0.0, vote, best, best_difference)
@@ -123,6 +124,10 @@ class Sequences:
         self._recent.appendleft(vector)
         if is_new:
             self._add(vector, frame)
+
+    def start_session(self) -> None:
+        """A later session: its sequences do not reach back into the last one's frames."""
+        self._recent.clear()
 
     def _add(self, vector: np.ndarray, frame: int) -> None:
         count = len(self.frames)

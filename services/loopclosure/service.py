@@ -17,7 +17,8 @@ from schemas import CameraFrame, LoopClosure, PlanarIncrement, ViewTemplate
 from services.common.config import load_config
 from services.common.convert import image_from_msg
 from services.common.errors import ConfigError
-from services.common.journal import Journal
+from services.common.journal import SESSION, Journal, continue_session
+from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.common.settings import config_fields, params_of
@@ -25,7 +26,7 @@ from services.loopclosure.bow import BowParams
 from services.loopclosure.consistency import ConsistencyParams
 from services.loopclosure.detector import Confirmed, LoopClosureDetector, MeasuredVote, Measurement
 from services.loopclosure.geometry import GeometryParams
-from services.loopclosure.keyframes import KeyframeStore
+from services.loopclosure.keyframes import KeyframeStore, check_file as check_keyframes
 from services.loopclosure.places import DEFAULT_PLACE_RECOGNITION, PLACE_RECOGNITIONS
 from services.loopclosure.sequence import SequenceParams
 from services.loopclosure.templates import TemplateParams, ViewMatch
@@ -71,6 +72,10 @@ class _LoopClosureFields(BaseModel):
     geometry_params: dict[str, Any] = Field(
         default_factory=dict, description="Keyframe and closure-geometry parameters (GeometryParams, docs/closure_geometry.md).")
     keyframe_store_mb: float = Field(512.0, gt=0, description="Largest size of the keyframe file beside the journal, MiB.")
+    map: Path | None = Field(
+        None, description="A results folder whose map to start from (its places and keyframes, read only): this run is "
+                          "its next session, and its journal (`store`, required) the whole map.")
+    localize: bool = Field(False, description="With `map`: localise on it only; no place is stored.")
     store: Path | None = Field(
         None, description="Journal of templates and matches, appended every frame; a restarted service resumes from it. "
                           "Keyframes go beside it (same name, suffix .keyframes).")
@@ -147,13 +152,16 @@ class LoopClosureService(Service):
         self.detector = config.detector(keyframes)
         # Frames already handled (from the journal after a restart), to answer a re-sent frame again.
         self.recent: collections.OrderedDict[int, tuple[ViewMatch, tuple[Confirmed, ...]]] = collections.OrderedDict()
-        self.last_frame: int | None = None
+        self.last_frame: int | None = None   # numbered across the map's sessions (services/common/layout.py)
+        self.base = 0                        # the first frame number of this session
         self.journal = None
         if config.store is not None:
-            params = config.model_dump(mode="json", exclude={"store", "keyframe_store_mb"})
+            params = config.model_dump(mode="json", exclude={"store", "keyframe_store_mb", "map", "localize"})
             vocabulary = getattr(self.detector.places, "vocabulary_id", None)
             header = {"format": JOURNAL_FORMAT, "version": JOURNAL_VERSION, "params": params,
                       **({"vocabulary": vocabulary} if vocabulary else {})}
+            if config.map is not None and not (config.store.exists() and config.store.stat().st_size):
+                start_session(config, header, keyframes)
             self.journal = Journal(config.store, header)
             for record in self.journal.records:
                 self._replay(record)
@@ -173,13 +181,14 @@ class LoopClosureService(Service):
 
     def on_frame(self, message: CameraFrame) -> None:
         seq = message.header.seq
-        if self.last_frame is not None and seq <= self.last_frame:
-            if seq in self.recent:   # handled before a restart: answer it again from the journal
-                self._publish(message.header, *self.recent[seq])
+        frame = self.base + seq
+        if self.last_frame is not None and frame <= self.last_frame:
+            if frame in self.recent:   # handled before a restart: answer it again from the journal
+                self._publish(message.header, *self.recent[frame])
             return
         left = image_from_msg(message.left)
         right = image_from_msg(message.right) if message.right is not None else None
-        observed = self.detector.observe(seq, left, right, camera_of(message, left))
+        observed = self.detector.observe(frame, left, right, camera_of(message, left))
         for closure in observed.closures:
             m = closure.measurement
             log.info("loop closure confirmed at frame %d: frame %d ↔ frame %d (place %d), %d votes, measurement %s%s", seq,
@@ -189,11 +198,11 @@ class LoopClosureService(Service):
         # Journaled after publishing: a crash in between re-handles the frame, never loses it.
         if self.journal is not None:
             match = observed.match
-            self.journal.append({"frame": seq, "template": match.template_id, "new": match.is_new,
+            self.journal.append({"frame": frame, "template": match.template_id, "new": match.is_new,
                                  "distance": match.distance, "angle": match.relative_angle,
                                  "matched_frame": match.matched_frame, "shift": match.shift, "view": observed.journal_view,
                                  "vote": _vote_record(observed.vote)})
-        self._remember(seq, observed.match, observed.closures)
+        self._remember(frame, observed.match, observed.closures)
 
     def _publish(self, header, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:
         for closure in closures:
@@ -212,6 +221,12 @@ class LoopClosureService(Service):
 
     def _replay(self, record: dict) -> None:
         """Rebuild the places and the consistency window from one journal record."""
+        if SESSION in record:
+            self.detector.start_session(record[SESSION], record["localize"])
+            self.base = session_base(record[SESSION])
+            log.info("loopclosure: session %d on the map of %s%s", record[SESSION], record["map"],
+                     " (localisation)" if record["localize"] else "")
+            return
         match = ViewMatch(record["template"], record["new"], record["distance"], record["angle"], record["matched_frame"],
                           record["shift"])
         vote = record["vote"]
@@ -232,6 +247,14 @@ class LoopClosureService(Service):
                 "closure_geometry_failed": counts["geometry_failed"]}
 
 
+def start_session(config: LoopClosureConfig, header: dict, keyframes: KeyframeStore) -> None:
+    """Begin the session's journal as the saved map's (checked, read only) and copy its keyframes."""
+    files = map_files(config.map)
+    check_keyframes(files["keyframes"])
+    continue_session(files["places"], config.store, header, config.localize, config.map)
+    keyframes.copy_from(files["keyframes"])
+
+
 def add_place_recognition_argument(parser: argparse.ArgumentParser) -> None:
     """--place-recognition, shared by every command that runs the loop closure (run, demo, map build, the service)."""
     field = _LoopClosureFields.model_fields["place_recognition"]
@@ -246,12 +269,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--closure", choices=["metric", "ratslam"],
                         help="measure each closure's relative pose (metric, default) or not (ratslam: the map snaps)")
     add_place_recognition_argument(parser)
+    add_map_reuse_arguments(parser)
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(LoopClosureConfig, "loopclosure", preset=args.preset, config_file=args.config,
                          overrides={"match_threshold": args.match_threshold, "store": args.store, "closure": args.closure,
-                                    "place_recognition": args.place_recognition})
+                                    "place_recognition": args.place_recognition, "map": args.map,
+                                    "localize": args.localize})
     config.geometry_parameters()   # a bad key fails at start, with one line
     config.place_params()
+    if config.map is not None and config.store is None:
+        raise ConfigError("[loopclosure] map: a session on a saved map needs a journal of its own (--store FILE)")
+    if config.localize and config.map is None:
+        raise ConfigError("[loopclosure] localize: localisation needs a saved map (--map DIR)")
     return LoopClosureService(runtime, config, args.instance).run()

@@ -124,14 +124,15 @@ class ViewTemplates:
             patch *= self.params.normalisation / mean
         return patch
 
-    def observe(self, image: np.ndarray, frame: int) -> ViewMatch:
-        """Match the frame's view against every stored template; store it when none is close."""
+    def observe(self, image: np.ndarray, frame: int, learn: bool = True) -> ViewMatch:
+        """Match the frame's view against every stored template; store it when none is close
+        (without ``learn``, a localisation: the closest is the match, however far)."""
         patch = self.template_of(image)
         nearest = -1
         if self.frames:
             template_id, distance, shift = self.best_match(patch)
             nearest = self.frames[template_id]
-            if distance <= self.params.match_threshold:
+            if distance <= self.params.match_threshold or not learn:
                 return ViewMatch(template_id, False, distance, shift * self.radians_per_column, nearest, shift, nearest)
         else:
             distance = 0.0

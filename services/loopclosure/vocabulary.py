@@ -39,8 +39,13 @@ class VocabularyError(DataError):
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamming distances between binary descriptors broadcast against each other (uint8, last axis
-    the descriptor's bytes)."""
-    return np.bitwise_count(np.bitwise_xor(a, b)).sum(axis=-1, dtype=np.int32)
+    the descriptor's bytes), counted 64 bits at a time."""
+    return np.bitwise_count(np.bitwise_xor(_words64(a), _words64(b))).sum(axis=-1, dtype=np.int32)
+
+
+def _words64(descriptors: np.ndarray) -> np.ndarray:
+    """The same bits as uint64 words (the last axis 8 times shorter)."""
+    return np.ascontiguousarray(descriptors, dtype=np.uint8).view(np.uint64)
 
 
 @dataclass(frozen=True, eq=False)

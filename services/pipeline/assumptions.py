@@ -35,6 +35,8 @@ class Assumptions:
 
 def describe_camera(frames: FrameSource) -> str:
     camera = frames.camera
+    if camera is None and getattr(frames, "camera_note", None):   # a live stream's camera comes with it
+        return frames.camera_note
     if camera is None:
         return "none (no calibration: the estimators and closure geometry that need one cannot run)"
     size = f"{camera.width}×{camera.height}, " if camera.width else ""
@@ -59,7 +61,7 @@ def assess(estimator: str | None, preset: str | None, config_file, camera_height
         raise StageInputError(f"the stereo estimator{whose} needs a stereo pair with its calibration, and {spec} {what}: "
                               + ("give --calibration FILE with its baseline" if what.startswith("has") else
                                  "use --egomotion mono (a camera is assumed when none is given) or --egomotion scanline"))
-    if name == "mono" and camera is None:
+    if name == "mono" and camera is None and not getattr(frames, "camera_expected", False):
         raise StageInputError(f"the mono estimator{whose} needs camera intrinsics and {spec} has none: give --calibration "
                               "FILE (fx, fy, cx, cy)" + (" or --camera-info-topic" if spec.startswith("rosbag:") else ""))
     if name == "passthrough" and first is not None and first.odometry is None and first.ground_truth is None:

@@ -6,13 +6,13 @@ pace), medians over repeated runs."""
 
 from __future__ import annotations
 
-import argparse
 import os
 import socket
 import statistics
 import tempfile
 from pathlib import Path
 
+from services.common.settings import CommandParser
 from services.evaluation.results import format_table
 from services.pipeline.runner import RunConfig, run_pipeline
 from services.source.calibration import write_calibration
@@ -61,7 +61,7 @@ def measure(config: RunConfig, repeats: int, folder: Path) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench pipeline", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="gridslam bench pipeline", description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=300, help="frames per run (default 300)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per configuration (default 3)")
     parser.add_argument("--nubot", type=Path, default=NUBOT, metavar="DIR",

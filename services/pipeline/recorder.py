@@ -16,8 +16,9 @@ import zenoh
 from schemas import ServiceStatus
 from services.common import codec, health, topics
 from services.common.convert import heading_of, image_from_msg, pose_to_matrix
+from services.common.observe import map_items
 from services.common.runtime import RuntimeConfig, open_session
-from services.ros.messages import camera_jpeg, link_kind
+from services.ros.messages import camera_jpeg
 
 log = logging.getLogger(__name__)
 
@@ -33,9 +34,15 @@ class Recording:
     ground_truth: dict[int, np.ndarray] = field(default_factory=dict)
     increments: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     grid_poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)
-    map_poses: dict[int, tuple[float, float, float, int]] = field(default_factory=dict)
+    map_poses: dict[int, tuple[float, float, float, int, bool]] = field(default_factory=dict)   # x, y, heading, experience, localized
     final_map: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # frames on the final map
     map_decisions: list[tuple[int, int, str]] = field(default_factory=list)   # the final map's closures: frame, matched, fate
+    # A session on a saved map: the first frame number of this run's frames in the map
+    # (services/common/layout.py; closures and decisions name frames so), and the true positions
+    # of the saved sessions' frames (from their results folder), to judge closures to them.
+    frame_base: int = 0
+    saved_truth: dict[int, tuple[float, float]] = field(default_factory=dict)
+    whole_map: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # every session's frames, final map
     templates: dict[int, tuple[int, bool]] = field(default_factory=dict)
     closures: dict[int, tuple[int, int, int, int]] = field(default_factory=dict)   # frame → closure (once, if re-sent)
     lattices: dict[int, np.ndarray] = field(default_factory=dict)
@@ -152,7 +159,7 @@ class Recorder:
                 r.grid_poses[seq] = (message.pose.position.x, message.pose.position.y, message.heading)
             elif topic == "map/pose":
                 r.map_poses[seq] = (message.pose.position.x, message.pose.position.y, heading_of(message.pose),
-                                    message.experience_id)
+                                    message.experience_id, message.localized)
             elif topic == "view/template":
                 r.templates[seq] = (message.template_id, message.is_new)
             elif topic == "loop/closure":
@@ -160,7 +167,4 @@ class Recorder:
             elif topic == "grid/activity":
                 r.lattices[seq] = image_from_msg(message.image)
             elif topic == "map/update":
-                r.map_updates.append((seq, [(e.id, e.x, e.y) for e in message.experiences],
-                                      [(link.source, link.target,
-                                        link_kind(link.loop_closure, getattr(link, "accepted", True)))
-                                       for link in message.links]))
+                r.map_updates.append((seq, *map_items(message)))

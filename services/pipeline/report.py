@@ -5,19 +5,21 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
 
+from services.common.layout import session_of
 from services.evaluation import metrics, plots
 from services.evaluation.results import write_json, write_trajectory_files
+from services.evaluation.revisits import TRUE_CLOSURE_M, same_place
 from services.evaluation.trajectory import Trajectory, camera_to_planar, integrate_increments
 from services.pipeline.recorder import Recording
 
 log = logging.getLogger(__name__)
 
 RPE_DISTANCES_M = (1.0, 10.0, 100.0)
-TRUE_CLOSURE_M = 2.0   # a closure between frames farther apart than this (by ground truth) is false
 # Stage → the topic whose arrival times give its latency. `map_online` is the pose expmap published
 # at each frame; `map` is every frame placed on the final, relaxed map (from the map's journal).
 STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map_online": "map/pose", "map": "map/pose"}
@@ -109,6 +111,8 @@ def evaluate(recording: Recording, statuses: dict[str, dict], restarts: dict[str
         "loop_closures": [dict(zip(("frame", "matched_frame", "matched_template", "votes"), c))
                           for _, c in sorted(recording.closures.items())],
         "map_closures": map_closures(recording, trajs.get("groundtruth")),
+        **({"localization": localization(recording, trajs.get("groundtruth"))}
+           if recording.frame_base or any(not pose[4] for pose in recording.map_poses.values()) else {}),
         "view_templates": 1 + max((t for t, _ in recording.templates.values()), default=-1),
         "experiences": 1 + max((m[3] for m in recording.map_poses.values()), default=-1),
         "groundtruth_path_length_m": reference.path_length() if reference is not None else None,
@@ -127,13 +131,55 @@ def map_closures(recording: Recording, truth: Trajectory | None) -> dict:
     counts: dict = collections.Counter(fate for _, _, fate in recording.map_decisions)
     result = {fate: counts.get(fate, 0) for fate in ("accepted", "rejected", "unmeasured", "unmatched")}
     if truth is not None and recording.map_decisions:
-        row = {s: i for i, s in enumerate(_seqs(recording, "groundtruth"))}
-        distances = [(fate, float(np.linalg.norm(truth.positions[row[f], :2] - truth.positions[row[m], :2])))
-                     for f, m, fate in recording.map_decisions if f in row and m in row]
+        position = truth_positions(recording, truth)
+        judged = [(fate, same_place(position[f], position[m]), math.dist(position[f], position[m]))
+                  for f, m, fate in recording.map_decisions if f in position and m in position]
         for fate in ("accepted", "rejected", "unmeasured"):
-            result[f"{fate}_true"] = sum(d <= TRUE_CLOSURE_M for x, d in distances if x == fate)
-            result[f"{fate}_false"] = sum(d > TRUE_CLOSURE_M for x, d in distances if x == fate)
-        result["accepted_largest_distance_m"] = max((d for x, d in distances if x == "accepted"), default=None)
+            result[f"{fate}_true"] = sum(true for x, true, _ in judged if x == fate)
+            result[f"{fate}_false"] = sum(not true for x, true, _ in judged if x == fate)
+        result["accepted_largest_distance_m"] = max((d for x, _, d in judged if x == "accepted"), default=None)
+    return result
+
+
+def truth_positions(recording: Recording, truth: Trajectory) -> dict[int, tuple[float, float]]:
+    """The true position of every frame the map's closures may name: this run's frames (by their
+    number in the map) and a saved map's (services/common/layout.py)."""
+    position = dict(recording.saved_truth)
+    for row, seq in enumerate(_seqs(recording, "groundtruth")):
+        position[recording.frame_base + seq] = tuple(truth.positions[row, :2])
+    return position
+
+
+def localization(recording: Recording, truth: Trajectory | None) -> dict:
+    """A session on a saved map: from which frame its poses were in the map's frame (placed or
+    joined), how many were, the experiences it added, and — with ground truth in the map's frame
+    (a saved map of the same source: the truth's origin is its first frame) — the error of those
+    poses as they are, without any alignment."""
+    seqs = sorted(recording.map_poses)
+    localized = [s for s in seqs if recording.map_poses[s][4]]
+    new = {e for _, experiences, _ in recording.map_updates for e, _, _ in experiences}
+    result = {"frames": len(seqs), "localized_frames": len(localized),
+              "first_localized": localized[0] if localized else None,
+              "frames_to_localize": (localized[0] - seqs[0]) if localized else None, "experiences_changed": len(new)}
+    if truth is not None and localized:
+        row = {s: i for i, s in enumerate(_seqs(recording, "groundtruth"))}
+        errors = np.array([math.dist(recording.map_poses[s][:2], truth.positions[row[s], :2]) for s in localized if s in row])
+        if len(errors):
+            result["error_unaligned_m"] = {"max": float(errors.max()), "rmse": float(np.sqrt(np.mean(errors ** 2))),
+                                           "mean": float(errors.mean())}
+    if truth is not None and recording.saved_truth and recording.whole_map:
+        # Every session's frames on the final map against their truth, in the first session's frame.
+        position = truth_positions(recording, truth)
+        frames = [f for f in sorted(recording.whole_map) if f in position]
+        if len(frames) >= 3:
+            poses = np.array([recording.whole_map[f] for f in frames])
+            estimate = Trajectory.from_planar(np.arange(len(frames), dtype=float), poses[:, 0], poses[:, 1], poses[:, 2])
+            reference = np.array([position[f] for f in frames])
+            unaligned = np.hypot(*(poses[:, :2] - reference).T)
+            result["whole_map"] = {"frames": len(frames), "sessions": len({session_of(f) for f in frames}),
+                                   "ate_se2_rmse_m": metrics.ate(estimate, Trajectory.from_planar(
+                                       estimate.stamps, reference[:, 0], reference[:, 1], poses[:, 2]), align="se2")["rmse"],
+                                   "error_unaligned_rmse_m": float(np.sqrt(np.mean(unaligned ** 2)))}
     return result
 
 
@@ -196,6 +242,19 @@ def summary_rows(result: dict) -> list[tuple[str, object, str]]:
     if summary["loop_closures"]:
         rows.append(("closures accepted / rejected / unmeasured by the map",
                      f"{closures['accepted']} / {closures['rejected']} / {closures['unmeasured']}", ""))
+    located = summary.get("localization")
+    if located:
+        rows.append(("in the map's frame from frame", "—" if located["first_localized"] is None else
+                     f"{located['first_localized']} ({located['frames_to_localize']} frames in)", ""))
+        rows.append(("frames in the map's frame", f"{located['localized_frames']} of {located['frames']}", "frames"))
+        rows.append(("experiences added or moved", located["experiences_changed"], ""))
+        if "error_unaligned_m" in located:
+            error = located["error_unaligned_m"]
+            rows.append(("map pose error, no alignment: max / RMSE", f"{error['max']:.4g} / {error['rmse']:.4g}", "m"))
+        if "whole_map" in located:
+            whole = located["whole_map"]
+            rows.append((f"whole map ({whole['sessions']} sessions, {whole['frames']} frames): ATE RMSE (SE(2)) / "
+                         "no alignment", f"{whole['ate_se2_rmse_m']:.4g} / {whole['error_unaligned_rmse_m']:.4g}", "m"))
     if "accepted_false" in closures:
         rows.append(("closures accepted: true / false", f"{closures['accepted_true']} / {closures['accepted_false']}",
                      f"false: frames > {TRUE_CLOSURE_M:g} m apart"))

@@ -9,6 +9,8 @@ restarting any service that dies → query statuses and the map → stop everyth
 from __future__ import annotations
 
 import collections
+import dataclasses
+import json
 import logging
 import os
 import signal
@@ -21,21 +23,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from services.common.config import describe_preset, is_preset_file, load_config, preset_applies, read_toml
+from services.common.config import describe_preset, is_preset_file, load_config, preset_applies
 from services.common.errors import ConfigError, GridslamError
+from services.common.journal import SESSION, read_records
+from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, map_files,
+                                     session_base)
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
-from services.egomotion import ESTIMATORS
-from services.egomotion.shards import BLOCK as SHARD_BLOCK, default_block
+from services.common.settings import config_fields
+from services.egomotion import resolve_estimator, resolve_sharding
 from services.evaluation.results import results_dir, write_config
-from services.expmap.export import corrected_trajectory, read_log
+from services.evaluation.trajectory import read_tum
+from services.expmap.export import read_log
+from services.loopclosure.keyframes import check_file as check_keyframes
 from services.loopclosure.places import PLACE_RECOGNITIONS
 from services.pipeline.assumptions import assess
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
+from services.ros.rmw_zenoh import GraphParams
 from services.source.service import SourceConfig
 from services.source.spec import bag_settings, open_source
 
@@ -52,12 +60,6 @@ SHARDED_SPARE_BLOCKS = 1
 RESTARTS_WITHOUT_PROGRESS = 3
 TAIL_LINES = 20             # last lines of each child's output kept in memory
 LIVENESS_CHECK_S = 2.0      # while no frame completes, how often the stages' health tokens are checked
-MAP_LOG = "experience_map.log"           # the service state files in the results folder, so that a
-TEMPLATE_LOG = "view_templates.log"      # service the runner restarts resumes where it stopped
-GRID_CHECKPOINT = "gridcells.checkpoint.npz"
-# What a run leaves that the next run in the same folder would resume from (the services' state,
-# with their side files such as the keyframes) or append to (the logs).
-RUN_STATE_PATTERNS = ("experience_map.*", "view_templates.*", "gridcells.checkpoint*", "logs/*.log")
 
 
 ASSUMED = "assumed"   # config.json's entry of what the run assumed (assumptions.py), beside RunConfig's fields
@@ -67,12 +69,13 @@ class RunError(GridslamError):
     """The run could not start or complete (the message says which service and where its log is)."""
 
 
-class RunConfig(BaseModel):
+class _RunFields(BaseModel):
     """A whole-stack run (`gridslam run`); written to config.json in the results folder."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED.")
+    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
+                                    "rosbag:PATH, ros2:TOPIC.")
     egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
         None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
@@ -99,14 +102,19 @@ class RunConfig(BaseModel):
     robot: str = Field("robot0", description="Robot name.")
     window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
     egomotion_instances: int = Field(
-        1, ge=1, le=16, description="Ego-motion instances sharing the frames (docs/pipeline.md, sharded ego-motion); with "
-                                    "more than one, at least N + 1 blocks of frames are kept in flight.")
+        1, ge=1, le=16, description="Ego-motion instances sharing the frames (docs/pipeline.md, sharded ego-motion): one "
+                                    "runs the estimator frame after frame; more run it in blocks, and at least N + 1 "
+                                    "blocks of frames are kept in flight.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
     closure: Literal["metric", "ratslam"] | None = Field(
         None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
                           "default: the services' (metric).")
     map_optimizer: Literal["gtsam", "ratslam"] | None = Field(
         None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
+    map: Path | None = Field(
+        None, description="Start from the map an earlier run left in this results folder (read only); this run is its next "
+                          "session, and its own results folder holds the whole map.")
+    localize: bool = Field(False, description="With map: localise on the saved map only, adding nothing to it.")
     place_recognition: Literal[PLACE_RECOGNITIONS] | None = Field(
         None, description="How loop closure recognises places: scanline, bow or sequence; default: the loopclosure's "
                           "(its preset's, or bow).")
@@ -117,11 +125,18 @@ class RunConfig(BaseModel):
                                           "preset's and the config file's [source] keys.")
     mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
     foxglove: int | None = Field(None, ge=0, le=65535, description="Also serve the run live to Foxglove on this port (loopback).")
+    ros2: bool = Field(False, description="Also run the ros2 service: the run as a node of a ROS 2 graph over Zenoh (docs/ecosystem.md).")
     image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
     right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
     camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
     odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
     stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
+
+
+# The ROS 2 graph settings of the ros2 service and of a ros2: source (--ros-domain-id,
+# --ros-namespace, --ros-distro, --ros2-keys), declared once in GraphParams; None: the service's.
+RunConfig = create_model("RunConfig", __base__=_RunFields, __doc__=_RunFields.__doc__,
+                         **config_fields(GraphParams, optional=True))
 
 
 @dataclass
@@ -133,6 +148,7 @@ class Child:
     restarts: int = 0
     seen: bool = False                # its health token was seen since its last start
     exits_without_progress: int = 0   # exits since a frame last completed
+    address: str | None = None        # where it serves, as it printed it (`gridslam viewer: http://...`)
     tail: collections.deque = field(default_factory=lambda: collections.deque(maxlen=TAIL_LINES))
     readers: list[threading.Thread] = field(default_factory=list)
 
@@ -175,8 +191,11 @@ class Supervisor:
             log.warning("%s: cannot write its log %s (%s)", child.name, child.log_path, error.strerror)
             log_file = None
         with stream:
+            announcement = f"gridslam {child.name.partition('-')[0]}: ".encode()
             for line in stream:
                 child.tail.append(line.decode(errors="replace").rstrip())
+                if line.startswith(announcement):   # a service saying where it serves (the viewer, Foxglove)
+                    child.address = line[len(announcement):].decode(errors="replace").strip()
                 if log_file is None:
                     continue
                 try:
@@ -287,15 +306,23 @@ def egomotion_children(config: RunConfig) -> list[str]:
     return ["egomotion"] + [f"egomotion-{index}" for index in range(2, config.egomotion_instances + 1)]
 
 
+def shard_block(config: RunConfig) -> int | None:
+    """Frames per block the run's egomotion instances run their estimator in, resolved as each
+    of them resolves it (services.egomotion.resolve_sharding: the estimator the preset, the
+    config file or the flags name, [egomotion] shard_block, GRIDSLAM_EGOMOTION_SHARD_BLOCK);
+    None with one instance, which runs it frame after frame."""
+    preset = config.preset if config.preset and preset_applies("egomotion", config.preset) else None
+    estimator, _ = resolve_estimator(config.egomotion, preset, config.config_file, config.camera_height)
+    return resolve_sharding(estimator, config.egomotion_instances, config_file=config.config_file)[1]
+
+
 def source_window(config: RunConfig) -> int:
     """Frames in flight: the configured window, and with several egomotion instances enough for
     each to have a block of frames and the next already sent."""
-    if config.egomotion_instances == 1:
+    block = shard_block(config)
+    if block is None:
         return config.window
-    block = default_block(ESTIMATORS[config.egomotion][0]) if config.egomotion else SHARD_BLOCK
-    if config.config_file is not None:
-        block = read_toml(config.config_file).get("egomotion", {}).get("shard_block", block)
-    return max(config.window, (config.egomotion_instances + SHARDED_SPARE_BLOCKS) * int(block))
+    return max(config.window, (config.egomotion_instances + SHARDED_SPARE_BLOCKS) * block)
 
 
 def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
@@ -307,6 +334,8 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--config", str(config.config_file)]
     if config.preset and preset_applies(name, config.preset):
         args += ["--preset", config.preset]
+    if name == "egomotion":   # each instance is told how many share the frames (one: frame after frame)
+        args += ["--instances", str(config.egomotion_instances)]
     if name == "egomotion" and config.egomotion:
         args += ["--estimator", config.egomotion]
     if name == "egomotion" and config.camera_height:
@@ -314,13 +343,15 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
     if name == "gridcells":
         args += ["--integrator", config.integrator, "--checkpoint", str(folder / GRID_CHECKPOINT)]
         args += ["--decoder", config.decoder] if config.decoder else []
-        args += ["--step", config.step_source] if config.step_source else []
+        args += ["--step-source", config.step_source] if config.step_source else []
         args += ["--modules", str(config.modules)] if config.modules else []
         args += ["--heading", config.heading] if config.heading else []
     if name == "viewer":
         args += ["--http", config.view]
     if name == "foxglove":
         args += ["--port", str(config.foxglove)]
+    if name == "ros2":
+        args += graph_args(config)
     if name == "loopclosure":
         args += ["--store", str(folder / TEMPLATE_LOG)]
         args += ["--place-recognition", config.place_recognition] if config.place_recognition else []
@@ -329,13 +360,24 @@ def service_args(config: RunConfig, child: str, folder: Path) -> list[str]:
         args += ["--map-optimizer", config.map_optimizer] if config.map_optimizer else []
     if name in ("loopclosure", "expmap") and config.closure:
         args += ["--closure", config.closure]
+    if name in ("loopclosure", "expmap") and config.map is not None:
+        args += ["--map", str(config.map)] + (["--localize"] if config.localize else [])
+    return args
+
+
+def graph_args(config: RunConfig) -> list[str]:
+    """The ROS 2 graph flags given to the run, for the ros2 service and a ros2: source."""
+    args = []
+    for name in (f.name for f in dataclasses.fields(GraphParams)):
+        value = getattr(config, name)
+        args += [f"--{name.replace('_', '-')}", str(value)] if value is not None else []
     return args
 
 
 def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
     stop = config.start + config.n_frames * config.step if config.n_frames else None
     args = ["service", "source", "-e", router_endpoint(config), "--robot", config.robot, "--instance", "source",
-            "--source", config.source, "--start", str(start), "--origin", str(config.start), "--step", str(config.step),
+            "--source", config.source, "--start", str(start), "--origin", str(origin_of(config)), "--stride", str(config.step),
             "--window", str(source_window(config)), "--ack-topic", ack_topic, "--resend-after", str(RESEND_AFTER_S)]
     if config.egomotion_instances > 1:
         # Instances work in parallel only on blocks already sent: a window fitted to one frame's
@@ -353,7 +395,43 @@ def source_args(config: RunConfig, start: int, ack_topic: str) -> list[str]:
         args += ["--world", f"{key}={str(value).lower() if isinstance(value, bool) else value}"]
     for key, value in bag_settings(config).items():
         args += [f"--{key.replace('_', '-')}", str(value)] if value is not None else []
+    if config.source.startswith("ros2:"):
+        args += graph_args(config)
     return args + (["--stop", str(stop)] if stop is not None else [])
+
+
+def origin_of(config: RunConfig) -> int:
+    """The frame whose pose is the ground truth's origin: the run's first, or on a saved map of
+    the same source the first of the run that made the map (so that its frame is the truth's)."""
+    if config.map is not None:
+        try:
+            saved = json.loads((config.map / CONFIG).read_text())
+        except (OSError, ValueError):
+            return config.start
+        if saved.get("source") == config.source and isinstance(saved.get("start"), int):
+            return saved["start"]
+    return config.start
+
+
+def check_saved_map(config: RunConfig) -> None:
+    """A run on a saved map fails at once, in one line, when the map is not there."""
+    if config.localize and config.map is None:
+        raise ConfigError("--localize needs a saved map to localise on: --map DIR")
+    if config.map is None:
+        return
+    if not config.mapping:
+        raise ConfigError("--map needs the map stage (drop --no-mapping)")
+    if not config.map.is_dir():
+        raise ConfigError(f"{config.map}: no such results folder (--map DIR: the folder of an earlier run)")
+    files = map_files(config.map)
+    missing = [path.name for path in files.values() if not path.is_file()]
+    if missing:
+        raise ConfigError(f"{config.map}: no saved map there (missing {', '.join(missing)})")
+    # Damage anywhere: one line naming the file and the place, before anything starts (the
+    # services check the rest — that the map was made with this run's settings — at start-up).
+    read_records(files["places"])
+    read_records(files["map"])
+    check_keyframes(files["keyframes"])
 
 
 def source_settings(config: RunConfig) -> SourceConfig:
@@ -377,23 +455,67 @@ def log_preset(config: RunConfig, services: list[str]) -> None:
         log.warning("%s", line)
 
 
+SERVERS = ("viewer", "foxglove")   # observers a user connects to: they announce an address
+
+
+@dataclass
+class Serving:
+    """A finished run's observers (the viewer, the Foxglove server, the ros2 node) and its router,
+    kept running so that a browser or Foxglove can still connect, until `wait()` returns."""
+
+    supervisor: Supervisor
+    names: list[str]
+
+    @property
+    def addresses(self) -> dict[str, str]:
+        return {name: self.supervisor.children[name].address for name in SERVERS
+                if name in self.names and self.supervisor.children[name].address}
+
+    def wait(self, stop_event: threading.Event | None = None) -> None:
+        """Until Ctrl-C (SIGINT), SIGTERM, `stop_event`, or every server has exited; then stop them."""
+        stop_event = stop_event or threading.Event()
+        previous = None
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGTERM, lambda *_: stop_event.set())
+        try:
+            while not stop_event.wait(0.2):
+                if all(self.supervisor.exited(name) is not None for name in self.names if name in SERVERS):
+                    log.warning("the run's viewer and Foxglove server have exited")
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+            self.close()
+
+    def close(self) -> None:
+        self.supervisor.stop(self.names)
+        self.supervisor.stop(["router"])
+
+
 @dataclass
 class RunResult:
     folder: Path
     metrics: dict
+    serving: Serving | None = None   # with run_pipeline(serve=True): the finished run's servers, still running
 
 
 def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop_event: threading.Event | None = None,
-                 overwrite: bool = False, announce=None) -> RunResult:
+                 overwrite: bool = False, announce=None, serve: bool = False) -> RunResult:
     """Run the whole stack on `config.source`, write the results folder, return its metrics.
 
     `progress(done, total)` is called about five times a second; `stop_event` ends the run early;
     `announce(line)` is given the lines saying what the run assumes (estimator, camera, scale)
-    before it starts. A run whose estimator cannot work on its source fails before anything
-    starts (assumptions.StageInputError).
+    before it starts, and the viewer's and the Foxglove server's addresses. A run whose
+    estimator cannot work on its source fails before anything starts (assumptions.StageInputError).
+    With `serve`, a run that ends by itself (its source finished) and has a viewer or a Foxglove
+    server leaves them (and the router, the ros2 node) running: RunResult.serving, whose
+    `wait()` the caller calls once it has shown the results.
     A folder that holds an earlier run is refused, or cleared first with `overwrite`: its
     services would resume that run's state instead of starting afresh."""
     stop_event = stop_event or threading.Event()
+    check_saved_map(config)
     if config.connect is None:
         check_port_free(config.listen)
     if config.foxglove is not None:   # fail now, in one line, rather than lose the live view quietly
@@ -411,43 +533,95 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     assumed = assess(config.egomotion, config.preset, config.config_file, config.camera_height, config.source, frames)
     folder = results_dir(out)
     clear_previous_run(folder, overwrite)
-    write_config(folder / "config.json", {**config.model_dump(mode="json"), ASSUMED: assumed.record()})
+    write_config(folder / CONFIG, {**config.model_dump(mode="json"), ASSUMED: assumed.record()})
     for line in assumed.lines():
         (announce or log.info)(line)
-    (folder / "logs").mkdir(exist_ok=True)
+    (folder / LOGS).mkdir(exist_ok=True)
     ack_topic = "map/pose" if config.mapping else "grid/pose"
-    supervisor = Supervisor(folder / "logs")
+    supervisor = Supervisor(folder / LOGS)
     started = time.monotonic()
+    kept: list[str] = []   # children that go on serving the finished run
+    observers = (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []) + \
+        (["ros2"] if config.ros2 else [])
     try:
         if config.connect is None:
             router = supervisor.start("router", ["router", "--listen", config.listen])
             wait_port_open(config.listen, router.process)
-        for name in stages + (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else []):
+        for name in stages + observers:
             supervisor.start(name, service_args(config, name, folder))
         runtime = RuntimeConfig(connect=[router_endpoint(config)], robot=config.robot)
         with Recorder(runtime, camera_images=config.mcap) as recorder:
             _wait_for_services(supervisor, recorder, stages)
+            for name in (name for name in observers if name in SERVERS):
+                (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
             supervisor.start("source", source_args(config, config.start, ack_topic))
-            _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
+            completed = _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
             statuses = recorder.statuses()
             recording = recorder.recording
         wall_time = time.monotonic() - started
+        if serve and completed and any(name in SERVERS for name in observers):
+            kept = observers
     finally:
-        supervisor.stop([n for n in supervisor.children if n != "router"])
-        supervisor.stop(["router"])
+        # The stages first (expmap sends the map as it ends), then the observers that are not kept.
+        supervisor.stop([n for n in supervisor.children if n not in ("router", *observers)])
+        supervisor.stop([n for n in observers if n not in kept])
+        if not kept:
+            supervisor.stop(["router"])
+    serving = Serving(supervisor, kept) if kept else None
+    try:
+        return RunResult(folder, _write_results(folder, config, supervisor, recording, statuses, total, wall_time), serving)
+    except BaseException:
+        if serving is not None:   # the results could not be written: nothing is left to serve
+            serving.close()
+        raise
+
+
+def _write_results(folder, config, supervisor, recording, statuses, total, wall_time) -> dict:
+    """Evaluate the finished run and write its results folder; its metrics."""
     if (folder / MAP_LOG).exists():
-        map_log = read_log(folder / MAP_LOG)
-        experience_map = map_log.rebuild()
-        final = corrected_trajectory(experience_map, map_log.steps)
-        x, y, heading = final.planar()
-        recording.final_map = {step.frame: (x[i], y[i], heading[i]) for i, step in enumerate(map_log.steps)}
-        recording.map_decisions = experience_map.decisions
+        final_map(folder, config, recording)
     restarts = {name: child.restarts for name, child in supervisor.children.items() if child.restarts}
     result, trajs = evaluate(recording, statuses, restarts, total, wall_time)
     if config.mcap:
         result["summary"]["run_mcap"] = write_after_run(folder, recording, trajs, config)
     write_report(folder, recording, result, trajs)
-    return RunResult(folder, result)
+    return result
+
+
+def _wait_for_address(supervisor: Supervisor, name: str) -> str:
+    """The address a server child printed (`gridslam viewer: URL`); RunError when it exits first."""
+    child = supervisor.children[name]
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while child.address is None:
+        code = supervisor.exited(name)
+        if code is not None:
+            raise RunError(f"{name} exited at start-up (code {code}): {supervisor.log_tail(name)} (log: {child.log_path})")
+        if time.monotonic() > deadline:
+            raise RunError(f"{name} did not say where it serves within {STARTUP_TIMEOUT_S:.0f} s (log: {child.log_path})")
+        time.sleep(0.05)
+    return child.address
+
+
+def final_map(folder: Path, config: RunConfig, recording) -> None:
+    """This run's frames placed on the final map, and the map's decisions on its closures, into
+    the recording; on a saved map, only this session's frames (a localisation's: the poses it
+    published, since it changes no map), and the saved sessions' true positions to judge them."""
+    map_log = read_log(folder / MAP_LOG)
+    experience_map = map_log.rebuild()
+    base = session_base(map_log.sessions[-1][1][SESSION]) if map_log.sessions else 0
+    recording.frame_base = base
+    whole_map = {frame: (x, y, heading) for frame, x, y, heading in experience_map.trajectory()}
+    recording.final_map = {frame - base: pose for frame, pose in whole_map.items() if frame >= base}
+    if experience_map.localizer is not None:   # a localisation's frames, from when they are in the map's frame
+        recording.final_map = {seq: pose[:3] for seq, pose in recording.map_poses.items() if pose[4]}
+    elif base:                                 # a later session: the map of every session, to score
+        recording.whole_map = whole_map
+    recording.map_decisions = [decision for decision in experience_map.decisions if decision[0] >= base]
+    if config.map is not None and (config.map / "groundtruth.tum").is_file():
+        truth = read_tum(config.map / "groundtruth.tum")
+        at_stamp = {round(stamp, 6): tuple(position[:2]) for stamp, position in zip(truth.stamps, truth.positions)}
+        recording.saved_truth = {step.frame: at_stamp[round(step.stamp, 6)] for step in map_log.steps
+                                 if step.frame < base and round(step.stamp, 6) in at_stamp}
 
 
 def clear_previous_run(folder: Path, overwrite: bool) -> None:
@@ -486,7 +660,8 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
         time.sleep(0.1)
 
 
-def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> None:
+def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event) -> bool:
+    """Until the source has finished (True) or `stop_event` is set (False)."""
     last_done, last_change = -1, time.monotonic()
     last_liveness_check, missed, silent = 0.0, set(), set()
     while not stop_event.is_set():
@@ -500,7 +675,7 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
         code = supervisor.exited("source")
         acked = recorder.last_seq(ack_topic)
         if code == 0:   # the source exits 0 once its last frame is acknowledged
-            return
+            return True
         if code is not None:
             # Resume at the last acknowledged frame: the frames in flight are sent again, after
             # one that every stage has handled (stale for them; it primes a restarted estimator).
@@ -537,3 +712,4 @@ def _supervise(config, supervisor, recorder, stages, ack_topic, total, progress,
             raise RunError(f"no frame completed for {config.stall_timeout:.0f} s (last acknowledged: {acked}){note}; "
                            f"see the logs in {supervisor.log_dir}")
         time.sleep(0.2)
+    return False

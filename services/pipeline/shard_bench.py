@@ -5,12 +5,12 @@ over repeated runs that take turns (docs/pipeline.md, "Several egomotion instanc
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import tempfile
 from pathlib import Path
 
+from services.common.settings import CommandParser
 from services.evaluation.results import format_table
 from services.pipeline.bench import free_port
 from services.pipeline.runner import RunConfig, run_pipeline
@@ -32,7 +32,7 @@ def run_once(config: RunConfig, folder: Path) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench sharding", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="gridslam bench sharding", description=__doc__.splitlines()[0])
     parser.add_argument("--source", default=f"stereo:{NUBOT}", help=f"source spec (default stereo:{NUBOT})")
     parser.add_argument("--preset", default="nubot", help="preset of every service (default nubot)")
     parser.add_argument("--egomotion", default="stereo", help="estimator (default stereo)")

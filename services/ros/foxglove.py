@@ -5,17 +5,27 @@ ws://127.0.0.1:8765. The topics, types and frames are those of run.mcap (message
 layout made for a recorded run works on a live one. The server is the official `foxglove-sdk`
 (extra `foxglove`): channels with ROS 2 message definitions (`ros2msg`) and CDR payloads.
 
+In front of it a relay (ws_relay.py) accepts both names of the protocol, `foxglove.sdk.v1`
+(the SDK's) and `foxglove.websocket.v1` (the npm `@foxglove/ws-protocol` client, Lichtblick
+before December 2025, older Foxglove Studio), and gives every client an SDK server of its own.
+So a client is sent, when it subscribes to a channel, what the run published on it so far
+(`RunHistory`: every pose, transform and loop closure, the newest map, image and camera info),
+then every new message: a client that connects late, or after the run has finished, sees the
+whole run.
+
 Like the viewer this is an observer: it never pushes back on the pipeline. Its inbox is deep
 and a full one drops the sample (counted as `dropped_busy` in its status); camera frames and
-lattice snapshots are taken newest-only; the SDK keeps a bounded queue per browser and drops a
-slow browser's oldest messages. Loopback by default: `--host` elsewhere needs `--allow-remote`
+lattice snapshots are taken newest-only; the SDK keeps a bounded queue per client and drops a
+slow client's oldest messages. Loopback by default: `--host` elsewhere needs `--allow-remote`
 (the protocol has no authentication).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import logging
+import threading
 import time
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
@@ -25,16 +35,22 @@ from services.common import codec, topics
 from services.common.config import load_config
 from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.errors import ConfigError
-from services.common.runtime import RuntimeConfig
+from services.common.geometry import planar_from_camera
+from services.common.observe import map_items, observe
+from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
 from services.gridcells.integrator import DeadReckoning, turn_first
-from services.ros.messages import TOPICS, MapState, RosMessages, camera_jpeg, link_kind, typestore
-from services.viewer.config import is_loopback
-from services.viewer.state import planar_from_camera
+from services.ros.messages import (
+    ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, TOPICS, MapState, RosMessages, camera_jpeg, typestore,
+)
+from services.ros.ws_relay import SubprotocolRelay
 
 log = logging.getLogger(__name__)
 
 INBOX_SIZE = 4096   # as the viewer's: pose messages are small, newest-only topics queue a marker only
+# Topics whose newest message holds all a client needs (the whole map, the last image): a late
+# client is sent that one; of every other topic, every message kept.
+NEWEST_ONLY = frozenset({"/tf_static", MARKERS_TOPIC, CAMERA_TOPIC, CAMERA_INFO_TOPIC, ACTIVITY_TOPIC})
 
 
 def check_available() -> None:
@@ -56,7 +72,11 @@ class FoxgloveConfig(BaseModel):
     host: str = Field("127.0.0.1", description="Address the WebSocket server binds to.")
     port: int = Field(8765, ge=0, le=65535, description="WebSocket port (Foxglove's default 8765; 0: any free port).")
     map_rate_hz: float = Field(1.0, gt=0, le=30, description="Experience-map MarkerArrays sent per second, at most.")
-    backlog: int = Field(1024, ge=16, description="Messages queued per browser; a slow browser loses its oldest.")
+    backlog: int = Field(1024, ge=16, description="Messages queued per client beyond the run so far; a slow client "
+                                                  "loses its oldest.")
+    history: int = Field(20000, ge=1, description="Messages kept per topic (poses, /tf, loop closures; of the map, images "
+                                                   "and camera info the newest only) and sent to a client when it "
+                                                   "subscribes: the run so far, or the whole finished run.")
 
     @field_validator("host")
     @classmethod
@@ -65,6 +85,90 @@ class FoxgloveConfig(BaseModel):
             raise ValueError(f"{value} is not a loopback address; the Foxglove protocol has no authentication, so "
                              "serving other machines needs --allow-remote (allow_remote = true)")
         return value
+
+
+class RunHistory:
+    """What the run published on each topic, for a client that subscribes later: up to `limit`
+    messages per topic (oldest dropped first), the newest only of the NEWEST_ONLY topics. Pure:
+    topics, stamps and payloads."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self.topics: dict[str, collections.deque[tuple[int, bytes]]] = {}
+
+    def add(self, topic: str, stamp: int, data: bytes) -> None:
+        kept = self.topics.get(topic)
+        if kept is None:
+            kept = self.topics[topic] = collections.deque(maxlen=1 if topic in NEWEST_ONLY else self.limit)
+        kept.append((stamp, data))
+
+    def messages(self, topic: str) -> list[tuple[int, bytes]]:
+        return list(self.topics.get(topic, ()))
+
+    def clear(self) -> None:
+        self.topics.clear()
+
+    def capacity(self, topics) -> int:
+        """The most messages it can hold of these topics."""
+        return sum(1 if topic in NEWEST_ONLY else self.limit for topic in topics)
+
+
+class ClientServer:
+    """One client's own foxglove-sdk server (its context and channels), on a loopback port the
+    relay joins the client to. When the client subscribes to a channel it is sent the run's
+    history of that topic; live messages reach a channel only after that, so none comes twice
+    or is lost in between (the owner's lock orders the two)."""
+
+    def __init__(self, owner: FoxgloveService):
+        import foxglove
+        import foxglove.websocket
+
+        self.owner = owner
+        self.context = foxglove.Context()
+        self.channels = {topic: foxglove.Channel(topic, message_encoding="cdr", context=self.context,
+                                                 schema=foxglove.Schema(name=msgtype, encoding="ros2msg",
+                                                                        data=owner.msgdefs[msgtype]))
+                         for topic, msgtype in TOPICS.items()}
+        self.replayed: set[str] = set()   # topics the client subscribed to and was sent the history of
+        self.closed = False
+        self._closing = threading.Lock()
+        listener = self
+
+        class Listener(foxglove.websocket.ServerListener):   # SDK threads
+            def on_subscribe(self, client, channel) -> None:
+                listener.on_subscribe(channel.topic)
+
+            def on_unsubscribe(self, client, channel) -> None:
+                with owner.lock:
+                    listener.replayed.discard(channel.topic)
+
+        config = owner.config
+        self.server = foxglove.start_server(
+            name=f"gridslam {owner.robot}", host="127.0.0.1", port=0, context=self.context, server_listener=Listener(),
+            message_backlog_size=config.backlog + owner.history.capacity(TOPICS))
+        self.port = self.server.port
+
+    def on_subscribe(self, topic: str) -> None:
+        if topic not in self.channels:
+            return
+        with self.owner.lock:
+            for stamp, data in self.owner.history.messages(topic):
+                self.channels[topic].log(data, log_time=stamp)
+            self.replayed.add(topic)
+
+    def log(self, topic: str, stamp: int, data: bytes) -> None:   # under the owner's lock
+        if topic in self.replayed:
+            self.channels[topic].log(data, log_time=stamp)
+
+    def close(self) -> None:
+        """Once, from whichever thread comes first (the relay's when the client leaves, the
+        service's when it stops)."""
+        with self._closing:
+            if self.closed:
+                return
+            self.closed = True
+        self.owner.forget(self)
+        self.server.stop()
 
 
 class FoxgloveService(Service):
@@ -76,60 +180,99 @@ class FoxgloveService(Service):
         super().__init__(runtime, instance)
         self.config = config
         check_available()
-        import foxglove
 
         self.ros = RosMessages()
-        self.context = foxglove.Context()
-        self.channels = {
-            topic: foxglove.Channel(topic, message_encoding="cdr", context=self.context,
-                                    schema=foxglove.Schema(name=msgtype, encoding="ros2msg", data=self.ros.msgdef(msgtype).encode()))
-            for topic, msgtype in TOPICS.items()}
+        self.msgdefs = {msgtype: self.ros.msgdef(msgtype).encode() for msgtype in set(TOPICS.values())}
+        self.history = RunHistory(config.history)
+        self.lock = threading.Lock()             # guards history and clients (main, relay and SDK threads)
+        self.clients: list[ClientServer] = []
         try:   # bound now: a busy port is an error before anything starts
-            self.server = foxglove.start_server(name=f"gridslam {runtime.robot}", host=config.host, port=config.port,
-                                                context=self.context, message_backlog_size=config.backlog)
-        except RuntimeError as error:
-            raise ConfigError(f"foxglove: cannot serve on {config.host}:{config.port}: "
-                              f"{str(error).removeprefix('FoxgloveError: ')}") from None
+            self.relay = SubprotocolRelay(config.host, config.port, self.open_client)
+        except OSError as error:
+            raise ConfigError(f"foxglove: cannot serve on {config.host}:{config.port}: {error.strerror or error}") from None
         self.sent = 0
         self.map_state = MapState()
         self.map_pending: int | None = None     # stamp of a map change not sent yet
         self.map_sent_at = 0.0
         self.dead_reckoning: DeadReckoning | None = None   # of the egomotion increments
-        self.egomotion_seq = -1
+        self.pose_seq: dict[str, tuple[int, int]] = {}   # pose topic → (first, last) seq of the run
         self._snapshot: MapSnapshot | None = None   # the map as fetched at start, until the main thread applies it
+
+    def open_client(self) -> ClientServer:   # a relay thread: a client is connecting
+        client = ClientServer(self)
+        with self.lock:
+            self.clients.append(client)
+        return client
+
+    def forget(self, client: ClientServer) -> None:
+        with self.lock:
+            if client in self.clients:
+                self.clients.remove(client)
 
     @property
     def url(self) -> str:
-        return f"ws://{self.config.host if ':' not in self.config.host else f'[{self.config.host}]'}:{self.server.port}"
+        return f"ws://{self.config.host if ':' not in self.config.host else f'[{self.config.host}]'}:{self.relay.port}"
+
+    def run(self) -> int:
+        # Clients may connect while a router is awaited; they get the run as it comes.
+        self.relay.start()
+        try:
+            return super().run()
+        finally:
+            self.close_server()
+
+    def close_server(self) -> None:
+        self.relay.stop()
+        with self.lock:
+            clients = list(self.clients)
+        for client in clients:
+            client.close()
 
     def setup(self) -> None:
-        # drop_stale=False: a seq going backwards is a new run, shown afresh (as the viewer does).
-        self.subscribe("egomotion", self.on_egomotion, drop_stale=False, follows=lambda message: message.previous_seq)
-        self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
-        self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
-        self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
-        self.subscribe("loop/closure", self.on_loop_closure, drop_stale=False, sparse=True)
-        self.subscribe("camera/frame", self.on_camera_frame, newest_only=True, drop_stale=False)
-        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
+        # drop_stale=False: a seq back at the run's first is a new run, shown afresh (_fresh).
+        observe(self, {"egomotion": self.on_egomotion, "grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose,
+                       "map/update": self.on_map_update, "loop/closure": self.on_loop_closure,
+                       "camera/frame": self.on_camera_frame, "grid/activity": self.on_grid_activity})
         # A map already built when this service starts: fetch it once (map/update then keeps it).
         self.session.get(topics.key(self.robot, "map/snapshot"), self._on_snapshot, timeout=5.0)
         log.info("foxglove serving %s", self.url)
 
     def teardown(self) -> None:
-        self.server.stop()
+        self.close_server()
 
     def on_idle(self) -> None:
         self._take_snapshot()
         self._send_map_if_due()
 
     def extra_counters(self) -> dict[str, float]:
-        return {**super().extra_counters(), "messages_sent": self.sent}
+        return {**super().extra_counters(), "messages_sent": self.sent, "clients": len(self.clients),
+                "clients_refused": self.relay.refused}
 
     # ----------------------------------------------------------------- pipeline topics (main thread)
     def _log(self, stamp: int, *messages: tuple[str, bytes]) -> None:
-        for topic, data in messages:
-            self.channels[topic].log(data, log_time=stamp)
-            self.sent += 1
+        with self.lock:
+            for topic, data in messages:
+                self.history.add(topic, stamp, data)
+                for client in self.clients:
+                    client.log(topic, stamp, data)
+                self.sent += 1
+
+    def _fresh(self, topic: str, seq: int) -> bool:
+        """Whether a pose is new. A seq back at or before the run's first is a new run on the
+        robot: the history starts afresh (True). One back by less is a frame sent again (a
+        stage's outputs replayed after a reconnection, the frames in flight resent to a
+        restarted stage): the clients have it already (False)."""
+        first, last = self.pose_seq.get(topic, (seq, seq - 1))
+        if seq <= first and last >= first and seq <= last:
+            with self.lock:
+                self.history.clear()
+            self.pose_seq.clear()
+            self.dead_reckoning = None
+            first = seq
+        elif seq <= last:
+            return False
+        self.pose_seq[topic] = (first, seq)
+        return True
 
     @staticmethod
     def _stamp(message) -> int:
@@ -140,27 +283,32 @@ class FoxgloveService(Service):
         # Dead reckoning of the increments as egomotion.tum has it, the way the viewer and the
         # gridcells baseline do it (turned for the integrators' turn-first order).
         seq = message.header.seq
-        if self.dead_reckoning is None or seq <= self.egomotion_seq:
+        if not self._fresh("egomotion", seq):
+            return
+        if self.dead_reckoning is None:
             self.dead_reckoning = DeadReckoning()
-        self.egomotion_seq = seq
         step = message.increment
         pose = self.dead_reckoning.step(*turn_first(step.forward, step.left, step.yaw), step.yaw).pose
         stamp = self._stamp(message)
         self._log(stamp, *self.ros.planar_pose("egomotion", stamp, pose.x, pose.y, pose.heading))
 
     def on_grid_pose(self, message: GridPose) -> None:
+        if not self._fresh("grid/pose", message.header.seq):
+            return
         stamp = self._stamp(message)
         self._log(stamp, *self.ros.planar_pose("gridcells", stamp, message.pose.position.x, message.pose.position.y,
                                                message.heading))
 
     def on_map_pose(self, message: MapPose) -> None:
+        if not self._fresh("map/pose", message.header.seq):
+            return
         stamp = self._stamp(message)
         self._log(stamp, *self.ros.planar_pose("map", stamp, message.pose.position.x, message.pose.position.y,
                                                message.heading))
 
     def on_map_update(self, message: MapUpdate) -> None:
         self._take_snapshot()
-        if self._apply_map(message.experiences, message.links):
+        if self.map_state.apply(*map_items(message)):
             self.map_pending = self._stamp(message)
         self._send_map_if_due()
 
@@ -190,11 +338,6 @@ class FoxgloveService(Service):
         self._log(stamp, self.ros.activity(stamp, pixels))
 
     # ----------------------------------------------------------------- the map
-    def _apply_map(self, experiences, links) -> bool:
-        return self.map_state.apply(
-            [(e.id, e.x, e.y) for e in experiences],
-            [(link.source, link.target, link_kind(link.loop_closure, getattr(link, "accepted", True))) for link in links])
-
     def _send_map_if_due(self) -> None:
         now = time.monotonic()
         if self.map_pending is None or now - self.map_sent_at < 1.0 / self.config.map_rate_hz:
@@ -204,7 +347,7 @@ class FoxgloveService(Service):
 
     def _take_snapshot(self) -> None:
         snapshot, self._snapshot = self._snapshot, None
-        if snapshot is not None and self._apply_map(snapshot.experiences, snapshot.links):
+        if snapshot is not None and self.map_state.apply(*map_items(snapshot)):
             self.map_pending = self._stamp(snapshot)
 
     def _on_snapshot(self, reply) -> None:   # a Zenoh thread: the main thread applies it (_take_snapshot)

@@ -1,7 +1,7 @@
 """`run.mcap`: a whole run as one MCAP file of ROS 2 messages (CDR), which Foxglove opens and
 `ros2 bag play` replays. Written by `gridslam run` and `demo` at the end of a run from what the
 runner recorded (`content_from_recording`), and again by `gridslam export mcap RESULTS_DIR`
-from a results folder (`content_from_folder`). Every message is stamped (header and MCAP log
+from a results folder (services/pipeline/results_mcap.py). Every message is stamped (header and MCAP log
 time) with its frame's source stamp; messages are written in stamp order.
 
 The topics and frames are those of messages.py. The experience map is a MarkerArray written
@@ -12,7 +12,6 @@ more with the final map.
 from __future__ import annotations
 
 import heapq
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -22,10 +21,9 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from services.common.errors import DataError, GridslamError
-from services.evaluation.trajectory import Trajectory, read_tum
+from services.evaluation.trajectory import Trajectory
 from services.ros.messages import (
-    CAMERA_MAX_WIDTH, STAGES, TOPICS, MapState, RosMessages, RosUnavailable, camera_jpeg, link_kind, stamp_ns,
+    ROUTE_TOPIC, TOPICS, MapState, RosMessages, RosUnavailable, stamp_ns,
 )
 
 log = logging.getLogger(__name__)
@@ -36,10 +34,20 @@ MARKER_PERIOD_S = 1.0
 # /gridslam/map is the pose expmap published at each frame.
 STAGE_FILES = {"egomotion": "egomotion", "gridcells": "gridcells", "map": "map_online", "groundtruth": "groundtruth"}
 CHUNK_BYTES = 4 * 1024 * 1024
+# The MCAP ros2 profile's channel metadata `offered_qos_profiles`, as rosbag2 writes it (YAML,
+# rmw's enums: history 3 unknown, reliability 1 reliable, durability 1 transient_local or 2
+# volatile, liveliness 1 automatic, infinite durations): without it `ros2 bag play` offers every
+# topic as volatile, and a static-transform listener never gets /tf_static.
+LATCHED_TOPICS = ("/tf_static",)
+_INFINITE = "{sec: 2147483647, nsec: 4294967295}"
 
 
-class McapExportError(DataError):
-    """A results folder that cannot be exported (the message names the file)."""
+def offered_qos_profiles(topic: str) -> str:
+    """The YAML of one channel's offered QoS profile (a list of one)."""
+    durability = 1 if topic in LATCHED_TOPICS else 2
+    return (f"- history: 3\n  depth: 0\n  reliability: 1\n  durability: {durability}\n  deadline: {_INFINITE}\n"
+            f"  lifespan: {_INFINITE}\n  liveliness: 1\n  liveliness_lease_duration: {_INFINITE}\n"
+            "  avoid_ros_namespace_conventions: false\n")
 
 
 @dataclass
@@ -91,11 +99,25 @@ def write_after_run(folder: Path, recording, trajectories: dict[str, Trajectory]
 
 def write_run_mcap(path: Path, content: RunContent) -> dict[str, int]:
     """Write `content` as an MCAP file of ROS 2 messages; returns the message count per topic."""
+    ros = RosMessages()
+    counts = write_mcap(path, ros, _messages(ros, content), content.metadata)
+    log.info("wrote %s: %d messages on %d topics", path, sum(counts.values()), len(counts))
+    return counts
+
+
+def write_route_mcap(path: Path, poses) -> dict[str, int]:
+    """A route planned on the map as one nav_msgs/Path in the `map` frame, ``poses`` (N, 3)."""
+    ros = RosMessages()
+    return write_mcap(path, ros, [(0, ROUTE_TOPIC, ros.path(0, "map", [(0, x, y, heading) for x, y, heading in poses]))],
+                      {"content": "gridslam route"})
+
+
+def write_mcap(path: Path, ros: RosMessages, messages, metadata: dict | None = None) -> dict[str, int]:
+    """An MCAP file of (stamp ns, topic, CDR bytes) messages in stamp order; the count per topic."""
     try:
         from mcap.writer import CompressionType, Writer
     except ImportError:
         raise RosUnavailable("writing MCAP needs the optional extra 'ros': pip install 'gridslam[ros]'") from None
-    ros = RosMessages()
     counts: dict[str, int] = {}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -104,19 +126,19 @@ def write_run_mcap(path: Path, content: RunContent) -> dict[str, int]:
         writer.start(profile="ros2", library="gridslam")
         channels: dict[str, int] = {}
         schemas: dict[str, int] = {}
-        for number, (stamp, topic, data) in enumerate(_messages(ros, content)):
+        for number, (stamp, topic, data) in enumerate(messages):
             channel = channels.get(topic)
             if channel is None:
                 msgtype = TOPICS[topic]
                 if msgtype not in schemas:
                     schemas[msgtype] = writer.register_schema(msgtype, "ros2msg", ros.msgdef(msgtype).encode())
-                channel = channels[topic] = writer.register_channel(topic, "cdr", schemas[msgtype])
+                channel = channels[topic] = writer.register_channel(
+                    topic, "cdr", schemas[msgtype], metadata={"offered_qos_profiles": offered_qos_profiles(topic)})
             writer.add_message(channel, log_time=stamp, data=data, publish_time=stamp, sequence=number)
             counts[topic] = counts.get(topic, 0) + 1
-        if content.metadata:
-            writer.add_metadata("gridslam", {key: str(value) for key, value in content.metadata.items()})
+        if metadata:
+            writer.add_metadata("gridslam", {key: str(value) for key, value in metadata.items()})
         writer.finish()
-    log.info("wrote %s: %d messages on %d topics", path, sum(counts.values()), len(counts))
     return counts
 
 
@@ -169,116 +191,3 @@ def _markers(ros: RosMessages, updates: Iterable[tuple[float, list, list]]):
             last_written, pending = stamp, None
     if pending is not None:
         yield (stamp_ns(pending), *ros.markers(stamp_ns(pending), state))
-
-
-# --------------------------------------------------------------------------- from a results folder
-def content_from_folder(folder: Path, images: bool = True) -> RunContent:
-    """The content of a run from its results folder: the TUM files of the stages, the map
-    journal replayed frame by frame, the closures of metrics.json, and the camera images read
-    again from the run's source (config.json) when `images` and the source is still there.
-    The grid-cell activity is not in a results folder, so an export has none."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise McapExportError(f"{folder}: no such results folder")
-    trajectories = {stage: read_tum(folder / f"{name}.tum") for stage, name in STAGE_FILES.items()
-                    if (folder / f"{name}.tum").is_file()}
-    if not trajectories:
-        raise McapExportError(f"{folder}: no trajectory (*.tum) of a gridslam run")
-    config = _read_json(folder / "config.json")
-    map_log = _map_log(folder)
-    frame_stamps = {step.frame: step.stamp for step in map_log.steps} if map_log is not None else {}
-    closures = []
-    for closure in (_read_json(folder / "metrics.json").get("summary", {}).get("loop_closures") or []):
-        if closure.get("frame") in frame_stamps:
-            closures.append((frame_stamps[closure["frame"]], closure))
-    content = RunContent(trajectories=trajectories, map_updates=_journal_updates(map_log) if map_log is not None else (),
-                         closures=closures, metadata={"source": str(config.get("source", "")), "exported_from": str(folder)})
-    if images and config.get("source"):
-        content.images, content.camera_model = _source_images(config)
-    return content
-
-
-def _read_json(path: Path) -> dict:
-    if not path.is_file():
-        return {}
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as error:
-        raise McapExportError(f"{path}: not readable JSON ({error})") from None
-
-
-def _map_log(folder: Path):
-    from services.pipeline.runner import MAP_LOG
-
-    if not (folder / MAP_LOG).is_file():
-        return None
-    from services.expmap.export import read_log
-
-    return read_log(folder / MAP_LOG)
-
-
-def _journal_updates(map_log) -> Iterator[tuple[float, list, list]]:
-    """The map after its frames, replayed from its journal: the map as it was published every
-    MARKER_PERIOD_S of the run's time, and the final map (as `map export` writes it) after the
-    last frame."""
-    from services.expmap.graph import ExperienceMap
-
-    experience_map = ExperienceMap(map_log.params)
-    last = None
-    for index, step in enumerate(map_log.steps):
-        step.apply(experience_map)
-        final = index == len(map_log.steps) - 1
-        if last is None or step.stamp - last >= MARKER_PERIOD_S or final:
-            state = experience_map.snapshot()
-            poses = experience_map.final_poses() if final else state.poses
-            last = step.stamp
-            yield (step.stamp, [(i, float(x), float(y)) for i, (x, y, _) in enumerate(poses)],
-                   [(link.source, link.target, link_kind(link.loop_closure, link.accepted)) for link in state.links])
-
-
-def _source_images(config: dict):
-    """The run's left camera images again, from its source (the run's config.json); ((), None)
-    when it cannot be read."""
-    from pydantic import ValidationError
-
-    from services.pipeline.runner import ASSUMED, RunConfig
-    from services.source.spec import bag_settings, open_source
-
-    try:
-        run = RunConfig.model_validate({key: value for key, value in config.items() if key != ASSUMED})
-    except ValidationError as error:
-        log.warning("camera images left out: config.json is not a run's configuration (%s)",
-                    str(error).splitlines()[0])
-        return (), None
-    if run.source.startswith("camera:"):
-        log.warning("camera images left out: the run's source %s is a live camera", run.source)
-        return (), None
-    stop = run.start + run.n_frames * run.step if run.n_frames else None
-    try:
-        frames = open_source(run.source, start=run.start, stop=stop, step=run.step, preset=run.preset,
-                             calibration=run.calibration, mono=True, topics=bag_settings(run), fov=run.fov)
-    except GridslamError as error:   # a moved dataset: the export goes on without images
-        log.warning("camera images left out: the run's source %s cannot be read again (%s)", run.source, error)
-        return (), None
-    first = frames[0]
-    scale = min(1.0, CAMERA_MAX_WIDTH / first.left.shape[1])   # as camera_jpeg scales the image
-    camera = frames.camera
-    model = None if camera is None else (camera.fx * scale, camera.fy * scale, camera.cx * scale, camera.cy * scale,
-                                         round(first.left.shape[1] * scale), round(first.left.shape[0] * scale))
-
-    def images():
-        with frames:
-            for frame in frames:
-                yield frame.stamp, camera_jpeg(frame.left, _encoding(frame.left))[0]
-
-    return images(), model
-
-
-def _encoding(image: np.ndarray) -> str:
-    return "bgr8" if image.ndim == 3 else "mono8"
-
-
-def export_mcap(folder: Path, out: Path | None = None, images: bool = True) -> tuple[Path, dict[str, int]]:
-    """`gridslam export mcap`: write FOLDER/run.mcap (or `out`) again from the results folder."""
-    path = Path(out) if out is not None else Path(folder) / MCAP_NAME
-    return path, write_run_mcap(path, content_from_folder(folder, images))

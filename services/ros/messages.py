@@ -1,7 +1,9 @@
 """The ROS 2 messages of a gridslam run, serialised to CDR (ROS 2's wire and bag encoding) with
-the message definitions of ROS 2 Humble from the `rosbags` type store (optional extra `ros`).
-Pure: numbers and arrays in, (topic, bytes) out; the MCAP writer and the Foxglove server both
-publish what this module makes, so a recorded run and a live one look the same.
+the message definitions of a ROS 2 distribution from the `rosbags` type store (optional extra
+`ros`; Humble's for files, the node's distribution live). Pure: numbers and arrays in, bytes
+out. This is the one place where gridslam's numbers become ROS 2 messages: the MCAP writer, the
+Foxglove server and the live ROS 2 node (node.py) all publish what it makes, so a recorded run
+and a live one look the same.
 
 Topics (docs/ecosystem.md):
 
@@ -31,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.common.observe import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC
 from services.common.errors import ConfigError
 
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -57,6 +60,9 @@ CLOSURE_TOPIC = "/gridslam/loop_closure"
 CAMERA_TOPIC = "/gridslam/camera/image/compressed"
 CAMERA_INFO_TOPIC = "/gridslam/camera/camera_info"
 ACTIVITY_TOPIC = "/gridslam/grid/activity"
+PATH = "nav_msgs/msg/Path"
+POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+ROUTE_TOPIC = "/gridslam/route"   # a route planned on the map (gridslam map route)
 TOPICS: dict[str, str] = {
     **{topic: ODOMETRY for topic, _ in STAGES.values()},
     "/tf": TF,
@@ -66,6 +72,7 @@ TOPICS: dict[str, str] = {
     CAMERA_TOPIC: COMPRESSED_IMAGE,
     CAMERA_INFO_TOPIC: CAMERA_INFO,
     ACTIVITY_TOPIC: IMAGE,
+    ROUTE_TOPIC: PATH,
 }
 # Optical axes (z forward, x right, y down) in the body frame (x forward, y left, z up):
 # REP 103's camera "_optical" rotation, as a quaternion (x, y, z, w).
@@ -74,8 +81,6 @@ OPTICAL_ROTATION = (-0.5, 0.5, -0.5, 0.5)
 # Camera images are recorded as JPEG at most this wide (a KITTI frame becomes 640×194).
 CAMERA_MAX_WIDTH = 640
 CAMERA_JPEG_QUALITY = 85
-# Link kinds of the experience map, as the viewer draws them.
-ODOMETRIC, CLOSURE_KEPT, CLOSURE_REFUSED = 0, 1, 2
 # Marker colours (r, g, b, a): the viewer's palette.
 COLOURS = {"experiences": (0.42, 0.25, 0.71, 0.9), ODOMETRIC: (0.42, 0.25, 0.71, 0.45),
            CLOSURE_KEPT: (0.88, 0.2, 0.1, 1.0), CLOSURE_REFUSED: (0.55, 0.55, 0.55, 0.8)}
@@ -86,18 +91,33 @@ class RosUnavailable(ConfigError):
     """The optional extra `ros` (rosbags, mcap) is not installed."""
 
 
-def typestore():
-    """rosbags' ROS 2 Humble type store; RosUnavailable without the extra."""
+# ROS 2 distribution → rosbags' type store of its message definitions (rolling: the newest).
+DISTRO_STORES = {"humble": "ROS2_HUMBLE", "jazzy": "ROS2_JAZZY", "kilted": "ROS2_KILTED", "rolling": "LATEST"}
+
+
+def typestore(distro: str = "humble"):
+    """rosbags' type store of a ROS 2 distribution (Humble's for files: every later one reads
+    them); RosUnavailable without the extra."""
     try:
         from rosbags.typesys import Stores, get_typestore
     except ImportError:
         raise RosUnavailable("ROS messages need the optional extra 'ros': pip install 'gridslam[ros]'") from None
-    return get_typestore(Stores.ROS2_HUMBLE)
+    return get_typestore(getattr(Stores, DISTRO_STORES[distro]))
 
 
-def link_kind(loop_closure: bool, accepted: bool = True) -> int:
-    """ODOMETRIC, CLOSURE_KEPT or CLOSURE_REFUSED (a closure the map did not let bend it)."""
-    return ODOMETRIC if not loop_closure else CLOSURE_KEPT if accepted else CLOSURE_REFUSED
+def yaw_quaternion(heading: float) -> tuple[float, float, float, float]:
+    """A heading counter-clockwise about z as a quaternion (x, y, z, w)."""
+    return 0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2)
+
+
+def planar_covariance_6x6(covariance) -> np.ndarray:
+    """A planar (x, y, yaw) 3×3 covariance in the 6×6 (x, y, z, roll, pitch, yaw) layout of
+    geometry_msgs/PoseWithCovariance, row-major; z, roll and pitch are held (variance 0)."""
+    planar = np.asarray(covariance, dtype=float).reshape(3, 3)
+    full = np.zeros((6, 6))
+    index = [0, 1, 5]
+    full[np.ix_(index, index)] = planar
+    return full.reshape(36)
 
 
 @dataclass
@@ -136,14 +156,18 @@ def stamp_ns(seconds: float) -> int:
 class RosMessages:
     """Builds and serialises the messages of the topics above."""
 
-    def __init__(self):
-        self.store = typestore()
+    def __init__(self, distro: str = "humble"):
+        self.store = typestore(distro)
         self.types = self.store.types
         self._camera_info: tuple[tuple, bytes] | None = None   # (intrinsics, CameraInfo bytes stamped 0)
 
     def msgdef(self, msgtype: str) -> str:
         """The ROS 2 `.msg` definition text (with its dependencies) of `msgtype`, as bags embed it."""
         return self.store.generate_msgdef(msgtype, ros_version=2)[0]
+
+    def rihs01(self, msgtype: str) -> str:
+        """The RIHS01 type hash (REP-2016) of `msgtype`'s definition in this distribution."""
+        return self.store.hash_rihs01(msgtype)
 
     # ------------------------------------------------------------------- building blocks
     def _time(self, stamp: int):
@@ -165,27 +189,58 @@ class RosMessages:
     def poses(self, stamp: int, poses) -> list[tuple[str, bytes]]:
         """Stages' poses at one stamp, `[(stage, position (x, y, z), orientation (x, y, z, w))]`:
         each stage's Odometry, and one /tf message with the transform from `map` to each body frame."""
-        T = self.types
         messages, transforms = [], []
         for stage, position, orientation in poses:
             topic, body = STAGES[stage]
-            point = T["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2]))
-            rotation = self._quaternion(*orientation)
-            odometry = T[ODOMETRY](
-                header=self._header(stamp, MAP_FRAME), child_frame_id=body,
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](
-                    pose=T["geometry_msgs/msg/Pose"](position=point, orientation=rotation), covariance=np.zeros(36)),
-                twist=T["geometry_msgs/msg/TwistWithCovariance"](
-                    twist=T["geometry_msgs/msg/Twist"](linear=self._vector(), angular=self._vector()), covariance=np.zeros(36)))
-            messages.append((topic, self._serialize(odometry, ODOMETRY)))
-            transforms.append(self._transform(stamp, MAP_FRAME, body, position, orientation))
+            messages.append((topic, self.odometry(stamp, MAP_FRAME, body, position, orientation)))
+            transforms.append((MAP_FRAME, body, position, orientation))
         if transforms:
-            messages.append(("/tf", self._serialize(T[TF](transforms=transforms), TF)))
+            messages.append(("/tf", self.transforms(stamp, transforms)))
         return messages
+
+    def _pose(self, position, orientation):
+        T = self.types
+        point = T["geometry_msgs/msg/Point"](x=float(position[0]), y=float(position[1]), z=float(position[2]))
+        return T["geometry_msgs/msg/Pose"](position=point, orientation=self._quaternion(*orientation))
+
+    def odometry(self, stamp: int, frame_id: str, child_frame_id: str, position, orientation, covariance=None,
+                 linear=(0.0, 0.0, 0.0), angular=(0.0, 0.0, 0.0)) -> bytes:
+        """nav_msgs/Odometry: a pose in `frame_id` of `child_frame_id` with its 6×6 covariance
+        (row-major, zeros: unknown) and the body-frame twist."""
+        T = self.types
+        covariance = np.zeros(36) if covariance is None else np.asarray(covariance, dtype=float).reshape(36)
+        message = T[ODOMETRY](
+            header=self._header(stamp, frame_id), child_frame_id=child_frame_id,
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=self._pose(position, orientation), covariance=covariance),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                twist=T["geometry_msgs/msg/Twist"](linear=self._vector(*linear), angular=self._vector(*angular)),
+                covariance=np.zeros(36)))
+        return self._serialize(message, ODOMETRY)
+
+    def transforms(self, stamp: int, transforms) -> bytes:
+        """tf2_msgs/TFMessage of `[(parent, child, translation (x, y, z), rotation (x, y, z, w))]`."""
+        return self._serialize(self.types[TF](transforms=[self._transform(stamp, *transform)
+                                                          for transform in transforms]), TF)
+
+    def pose_with_covariance(self, stamp: int, frame_id: str, position, orientation, covariance=None) -> bytes:
+        """geometry_msgs/PoseWithCovarianceStamped (covariance 6×6 row-major; zeros: unknown)."""
+        T = self.types
+        covariance = np.zeros(36) if covariance is None else np.asarray(covariance, dtype=float).reshape(36)
+        message = T[POSE_WITH_COVARIANCE](header=self._header(stamp, frame_id), pose=T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=self._pose(position, orientation), covariance=covariance))
+        return self._serialize(message, POSE_WITH_COVARIANCE)
+
+    def path(self, stamp: int, frame_id: str, poses) -> bytes:
+        """nav_msgs/Path of `[(stamp ns, x, y, heading)]`, planar poses in `frame_id`."""
+        T = self.types
+        stamped = [T["geometry_msgs/msg/PoseStamped"](header=self._header(at, frame_id),
+                                                      pose=self._pose((x, y, 0.0), yaw_quaternion(heading)))
+                   for at, x, y, heading in poses]
+        return self._serialize(T[PATH](header=self._header(stamp, frame_id), poses=stamped), PATH)
 
     def planar_pose(self, stage: str, stamp: int, x: float, y: float, heading: float) -> list[tuple[str, bytes]]:
         """One stage's planar pose (heading counter-clockwise about z): its Odometry and /tf."""
-        return self.poses(stamp, [(stage, (x, y, 0.0), (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2)))])
+        return self.poses(stamp, [(stage, (x, y, 0.0), yaw_quaternion(heading))])
 
     def _transform(self, stamp: int, parent: str, child: str, translation, rotation):
         T = self.types
@@ -195,8 +250,7 @@ class RosMessages:
 
     def static_transforms(self, stamp: int) -> tuple[str, bytes]:
         """/tf_static: the camera's optical frame on the corrected body frame."""
-        transform = self._transform(stamp, STAGES["map"][1], CAMERA_FRAME, (0.0, 0.0, 0.0), OPTICAL_ROTATION)
-        return "/tf_static", self._serialize(self.types[TF](transforms=[transform]), TF)
+        return "/tf_static", self.transforms(stamp, [(STAGES["map"][1], CAMERA_FRAME, (0.0, 0.0, 0.0), OPTICAL_ROTATION)])
 
     def camera_image(self, stamp: int, jpeg: bytes) -> tuple[str, bytes]:
         message = self.types[COMPRESSED_IMAGE](header=self._header(stamp, CAMERA_FRAME), format="jpeg",
@@ -225,20 +279,28 @@ class RosMessages:
 
     def activity(self, stamp: int, pixels: np.ndarray) -> tuple[str, bytes]:
         """The grid-cell activity image, mono8."""
+        return ACTIVITY_TOPIC, self.mono_image(stamp, GRID_FRAME, pixels)
+
+    def mono_image(self, stamp: int, frame_id: str, pixels: np.ndarray) -> bytes:
+        """sensor_msgs/Image, mono8, of an H×W array."""
         pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
         height, width = pixels.shape[:2]
-        message = self.types[IMAGE](header=self._header(stamp, GRID_FRAME), height=height, width=width, encoding="mono8",
+        message = self.types[IMAGE](header=self._header(stamp, frame_id), height=height, width=width, encoding="mono8",
                                     is_bigendian=0, step=width, data=pixels.reshape(-1))
-        return ACTIVITY_TOPIC, self._serialize(message, IMAGE)
+        return self._serialize(message, IMAGE)
 
     def closure(self, stamp: int, fields: dict) -> tuple[str, bytes]:
         """A confirmed loop closure as JSON in a std_msgs/String (no standard ROS message has its fields)."""
         return CLOSURE_TOPIC, self._serialize(self.types[STRING](data=json.dumps(fields, sort_keys=True)), STRING)
 
     def markers(self, stamp: int, state: MapState) -> tuple[str, bytes]:
-        """The whole experience map as a MarkerArray: one SPHERE_LIST of experiences (in id
-        order) and one LINE_LIST per link kind, each replacing its previous version (ADD on the
-        same namespace and id). Sizes follow the map's extent, so a corridor and a suburb both show."""
+        """The whole experience map as a MarkerArray on MARKERS_TOPIC (`marker_array`)."""
+        return MARKERS_TOPIC, self.marker_array(stamp, state)
+
+    def marker_array(self, stamp: int, state: MapState) -> bytes:
+        """The whole experience map as a MarkerArray in `map`: one SPHERE_LIST of experiences (in
+        id order) and one LINE_LIST per link kind, each replacing its previous version (ADD on
+        the same namespace and id). Sizes follow the map's extent, so a corridor and a suburb both show."""
         T = self.types
         ids = sorted(state.experiences)
         points = np.array([state.experiences[i] for i in ids], dtype=float).reshape(-1, 2)
@@ -250,7 +312,7 @@ class RosMessages:
                     if k == kind and s in state.experiences and t in state.experiences]
             if ends:
                 markers.append(self._marker(stamp, namespace, 5, size / 3, COLOURS[kind], np.array(ends).reshape(-1, 2)))
-        return MARKERS_TOPIC, self._serialize(T[MARKER_ARRAY](markers=markers), MARKER_ARRAY)
+        return self._serialize(T[MARKER_ARRAY](markers=markers), MARKER_ARRAY)
 
     def _marker(self, stamp: int, namespace: str, kind: int, size: float, colour, points: np.ndarray):
         T = self.types

@@ -9,12 +9,12 @@ Decoding uses rosbags' CDR deserialiser on the MCAP records read with the `mcap`
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from services.common.settings import CommandParser
 from services.evaluation import plots
 from services.ros.messages import ACTIVITY_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, STAGES, typestore
 
@@ -87,7 +87,7 @@ def preview(path: Path, out: Path, at: float | None = None) -> Path | None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = CommandParser(description=__doc__.splitlines()[0])
     parser.add_argument("mcap", type=Path, help="a run.mcap")
     parser.add_argument("out", type=Path, help="the PNG to write")
     parser.add_argument("--at", type=float, help="seconds into the run to draw (default: the end)")

@@ -6,12 +6,12 @@ limited to 1 unless --threads says otherwise).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
 
 import cv2
 
+from services.common.settings import CommandParser
 from services.source.spec import load_preset
 from services.source.synthetic import SyntheticWorld, WorldConfig, default_camera
 
@@ -22,7 +22,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench source", description=__doc__)
+    parser = CommandParser(prog="gridslam bench source", description=__doc__)
     parser.add_argument("--frames", type=int, default=200, help="frames rendered per configuration")
     parser.add_argument("--sizes", default="320x240,640x480", help="comma-separated image sizes WxH")
     parser.add_argument("--threads", type=int, default=1, help="OpenCV threads")

@@ -68,10 +68,3 @@ class FrameSource(Protocol):
     def __getitem__(self, i: int) -> Frame: ...
 
     def __iter__(self) -> Iterator[Frame]: ...
-
-
-def planar_motion(before: np.ndarray, after: np.ndarray) -> tuple[float, float, float]:
-    """Body-frame motion (forward m, left m, yaw rad counter-clockwise) between two 4×4 camera
-    poses in camera convention (x right, y down, z forward), as ``Frame.odometry`` holds it."""
-    relative = np.linalg.inv(before) @ after
-    return float(relative[2, 3]), float(-relative[0, 3]), float(np.arctan2(-relative[0, 2], relative[2, 2]))

@@ -38,7 +38,8 @@ import cv2
 import numpy as np
 
 from services.source.datasets import IndexedSource
-from services.source.frames import Camera, Frame, SourceError, planar_motion
+from services.common.geometry import planar_motion
+from services.source.frames import Camera, Frame, SourceError
 
 log = logging.getLogger(__name__)
 
@@ -197,7 +198,7 @@ class _Image:
     record: int
 
 
-def _camera_pose(x: float, y: float, yaw: float) -> np.ndarray:
+def camera_pose_of_planar(x: float, y: float, yaw: float) -> np.ndarray:
     """A planar pose (x forward, y left, yaw counter-clockwise) as a 4×4 camera pose in the
     camera convention (x right, y down, z forward), as ``Frame.ground_truth`` holds it."""
     c, s = math.cos(yaw), math.sin(yaw)
@@ -367,8 +368,8 @@ class RosbagSource(IndexedSource):
                         missing, len(selected), self.topics["odom"])
         if anchor is None:
             return {}, {}
-        inverse_anchor = np.linalg.inv(_camera_pose(*anchor))
-        truth = {seq: inverse_anchor @ _camera_pose(*pose) for seq, pose in planar.items() if pose is not None}
+        inverse_anchor = np.linalg.inv(camera_pose_of_planar(*anchor))
+        truth = {seq: inverse_anchor @ camera_pose_of_planar(*pose) for seq, pose in planar.items() if pose is not None}
         motion, previous = {}, None
         for seq in selected:
             if seq in truth:

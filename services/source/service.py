@@ -4,7 +4,8 @@ Offline replay loses nothing: pipeline topics use congestion control BLOCK, and 
 at most `window` frames in flight, counting a frame done when its `ack_topic` message (by
 default `map/pose`, the last stage) arrives. With `adaptive_window` (the default) it keeps fewer:
 as many as keep the slowest stage busy, worked out from its send and acknowledgement times
-(window.py), so that frames do not wait in queues for no throughput. A live camera keeps at most
+(window.py), so that frames do not wait in queues for no throughput; the frames in flight, their
+acknowledgements and their resends are replay.py's. A live camera keeps at most
 `live_window` frames in flight and then takes the camera's newest frame: the frames the pipeline
 has no time for are dropped at the camera, so none waits in a queue on the way and latency stays
 bounded.
@@ -13,7 +14,7 @@ With `wait_for`, the first frame waits until those services' health tokens are o
 (started all at once, as docker-compose does, the pipeline is not there yet). With `loop`, the
 source starts again at its first frame after its last, for ever (a demo that keeps running):
 `seq` and the stamps go on from the last lap's, so the pipeline sees one long run through the
-same world and keeps building the same map.
+same world and keeps building the same map (laps.py).
 
 With `resume`, a source restarted in a running pipeline (a container brought back by its
 restart policy) goes on where the pipeline is, instead of at its first frame, which every stage
@@ -26,8 +27,6 @@ looping source goes on in that frame's lap.
 from __future__ import annotations
 
 import argparse
-import bisect
-import collections
 import dataclasses
 import logging
 import time
@@ -43,9 +42,12 @@ from services.common.convert import image_to_msg, matrix_to_pose
 from services.common.health import live_services, statuses
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
+from services.common.settings import add_renamed_flag
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
-from services.source.frames import Frame, FrameSource, planar_motion
+from services.source.frames import Frame, FrameSource
+from services.source.laps import Laps
+from services.source.replay import Pacer, ReplayController, ReplayParams, Resend
 from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
                                   parse_world_flags, world_keys)
 from services.source.synthetic import WorldConfig
@@ -53,10 +55,8 @@ from services.source.window import AdaptiveWindow, WindowParams
 
 log = logging.getLogger(__name__)
 
-WAIT_LOG_PERIOD_S = 10.0   # how often a source stalled on its window says so
 # After camera/frame regains a subscriber (the router came back), wait this long before re-sending
-# the frames in flight: every client rejoins within its retry period (runtime.py: at most 0.5 s),
-# so the re-sent frames find all consumers back, not only the first one to reconnect.
+# the frames in flight (replay.py).
 RECONNECT_SETTLE_S = 0.5
 RESUME_QUERY_S = 2.0       # how long a resuming source waits for the services' status replies
 
@@ -68,7 +68,7 @@ class _SourceSettings(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     source: str = Field(description="What to read: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
-                                    "rosbag:PATH.")
+                                    "rosbag:PATH, ros2:TOPIC.")
     preset: str | None = Field(None, description="Source preset (calibration and settings): nubot, kitti, stlucia, synthetic, campus, "
                                                   "irat, or a preset file (docs/sources.md).")
     calibration: Path | None = Field(None, description="Calibration TOML file (fx, fy, cx, cy, baseline); overrides the preset's.")
@@ -154,38 +154,55 @@ class SourceService(Service):
     name = "source"
     idle_timeout = 0.0
 
-    def __init__(self, runtime: RuntimeConfig, config: SourceConfig, frames: FrameSource, instance: str | None = None):
+    def __init__(self, runtime: RuntimeConfig, config: SourceConfig, frames: FrameSource, instance: str | None = None,
+                 graph=None):
         super().__init__(runtime, instance)
+        self.graph = graph          # GraphParams of a ros2: source (the ROS 2 graph it listens to)
+        self.ros_node = None
         self.config = config
         self.frames = frames
         self.live = bool(getattr(frames, "live", False))
-        self.window = config.live_window if self.live else config.window
+        window = config.live_window if self.live else config.window
         # The window that follows the pipeline (replay only; a live camera keeps live_window).
-        self.flow = AdaptiveWindow(WindowParams(maximum=self.window)) \
-            if self.window and config.adaptive_window and not self.live else None
-        self.abandoned = 0   # live: frames in flight given up after resend_after without an acknowledgement
-        self.iterator = iter(frames)
-        self.in_flight: collections.OrderedDict[int, CameraFrame] = collections.OrderedDict()
-        self.last_progress = time.monotonic()
-        self.resent = 0
-        self.acknowledged: collections.deque[CameraFrame] = collections.deque(maxlen=config.resend_acknowledged)
-        self.sent = 0
+        flow = AdaptiveWindow(WindowParams(maximum=window)) if window and config.adaptive_window and not self.live else None
+        self.replay = ReplayController(ReplayParams(window=window, live=self.live, resend_after=config.resend_after,
+                                                    resend_acknowledged=config.resend_acknowledged,
+                                                    reconnect_settle=RECONNECT_SETTLE_S), flow)
+        self.pacer = Pacer(config.rate)
+        self.feed = Laps(frames, loop=config.loop, step=config.step)   # the frames as sent, lap after lap (laps.py)
         self.finished = False
-        self.next_due = 0.0
-        self.waiting_since: float | None = None
-        self.unreachable = False                   # camera/frame lost every subscriber after the first frame
-        self.reconnected_at: float | None = None   # when it regained one
+        self.completed = False      # every frame sent and acknowledged: `finished` in the status
         self.pipeline_ready = not config.wait_for  # the services of wait_for were seen
         self.pipeline_checked = 0.0
         self.pipeline_wait_said = False
-        self.laps = 0                               # laps completed (loop)
-        self.first: Frame | None = None             # the first frame of the source, and the last one read
-        self.last: Frame | None = None
-        self.seq_offset, self.stamp_offset = 0, 0.0  # added to the frames of the current lap
         self.resume_checked = False
         self.ready: CameraFrame | None = None       # the next frame, read ahead while the window is full
 
+    @property
+    def window(self) -> int:
+        """The configured window (live_window for a live camera; 0: no flow control)."""
+        return self.replay.params.window
+
+    @property
+    def flow(self) -> AdaptiveWindow | None:
+        return self.replay.flow
+
+    @property
+    def sent(self) -> int:
+        return self.replay.frames_sent
+
+    @property
+    def resent(self) -> int:
+        return self.replay.resent
+
+    @property
+    def laps(self) -> int:
+        """Laps completed (loop)."""
+        return self.feed.laps
+
     def setup(self) -> None:
+        if hasattr(self.frames, "subscriptions"):
+            self._listen_to_ros2()
         if self.window:
             if self.config.ack_topic not in TOPICS:
                 raise ValueError(f"ack_topic {self.config.ack_topic!r} is not a pipeline topic")
@@ -195,22 +212,44 @@ class SourceService(Service):
             # the consumers are reachable, instead of waiting for `resend_after` (issue 7).
             self._entities.append(self.publisher("camera/frame").declare_matching_listener(self._on_matching))
 
+    def _listen_to_ros2(self) -> None:
+        """A ros2: source: subscribe to its topics as the node `source` of the ROS 2 graph (graph.py)."""
+        from services.ros.graph import RosNode
+        from services.ros.messages import RosMessages
+        from services.ros.rmw_zenoh import RELIABLE_QOS, SENSOR_QOS, WireError, normalise_namespace, parse_attachment
+
+        p = self.graph
+        ros = RosMessages(p.ros_distro)
+        self.ros_node = RosNode(self.session, "source", normalise_namespace(p.ros_namespace), p.ros_domain_id,
+                                p.ros_distro, p.ros2_keys, hashes=ros.rihs01)
+        rmw_keys = p.ros2_keys == "rmw_zenoh"
+        for role, topic, types in self.frames.subscriptions():
+            def on_sample(key, msgtype, cdr, attachment, role=role):
+                attached = None
+                if rmw_keys:
+                    try:
+                        parse_attachment(attachment)
+                        attached = True
+                    except WireError:
+                        attached = False
+                self.frames.on_sample(role, key, msgtype, cdr, attached)
+
+            self.ros_node.subscription(topic, types, SENSOR_QOS if role in ("image", "right") else RELIABLE_QOS, on_sample)
+        self.frames.bind(self._stop)
+        log.info("source: listening to %s (ROS domain %d, %s keys)", ", ".join(self.frames.topics.values()),
+                 p.ros_domain_id, p.ros2_keys)
+
+    def teardown(self) -> None:
+        if self.ros_node is not None:
+            self.ros_node.close()
+
     def _on_matching(self, status) -> None:   # a Zenoh thread
-        if not status.matching:
-            self.unreachable = self.sent > 0
-        elif self.unreachable:
-            self.unreachable = False
-            self.reconnected_at = time.monotonic()
+        self.replay.subscribers(status.matching, time.monotonic())
 
     def on_ack(self, message: Message) -> None:
-        seq = message.header.seq
-        now = time.monotonic()
-        while self.in_flight and next(iter(self.in_flight)) <= seq:
-            self.acknowledged.append(self.in_flight.popitem(last=False)[1])
-            self.last_progress = now
+        before = self.limit
+        self.replay.acked(message.header.seq, time.monotonic())
         if self.flow is not None:
-            before = self.flow.limit
-            self.flow.acked(seq, now)
             if self.flow.limit != before and not self.flow.probing:
                 log.debug("source: window %d (%.1f frames/s, %.0f ms without a queue)", self.flow.limit,
                           self.flow.rate or 0.0, 1e3 * (self.flow.min_latency or 0.0))
@@ -218,35 +257,32 @@ class SourceService(Service):
     @property
     def limit(self) -> int:
         """Frames in flight before the source waits (0: no flow control)."""
-        return self.flow.limit if self.flow is not None else self.window
+        return self.replay.limit
 
     def on_idle(self) -> None:
-        now = time.monotonic()
-        if self.reconnected_at is not None and now - self.reconnected_at >= RECONNECT_SETTLE_S:
-            self.reconnected_at = None
-            if self.in_flight:
-                self._resend("camera/frame has subscribers again")
-        if self.in_flight and now - self.last_progress > self.config.resend_after:
-            self._resend(f"no acknowledgement for {self.config.resend_after:.1f} s")
+        resend = self.replay.resend_due(time.monotonic())
+        if resend is not None:
+            self._resend(resend)
         if self.finished:
-            if not self.in_flight or not self.window:
+            if self.replay.settled:
+                self.completed = True   # every frame out (and acknowledged): the run is over
                 if self.config.exit_at_end:
                     log.info("source: all %d frames sent%s", self.sent, " and acknowledged" if self.window else "")
                     self.stop()
             self._pause()
             return
-        if self.window and len(self.in_flight) >= self.limit:
-            self._note_waiting()
+        if self.replay.full:
+            waited = self.replay.stalled(time.monotonic())
+            if waited is not None:
+                log.warning("source: waited %.0f s for %s of frame %d", waited, self.config.ack_topic, self.replay.oldest)
             self._read_ahead()
             self._pause()
             return
-        self.waiting_since = None
-        if self.config.rate > 0:
-            delay = self.next_due - time.monotonic()
-            if delay > 0:
-                self._pause(min(delay, 0.05))
-                return
-            self.next_due = max(self.next_due, time.monotonic() - 1.0) + 1.0 / self.config.rate
+        self.replay.moving()
+        delay = self.pacer.delay(time.monotonic())
+        if delay > 0:
+            self._pause(min(delay, 0.05))
+            return
         if self.sent == 0 and not (self._pipeline_ready() and self._subscribers_ready()):
             self._pause(0.05)
             return
@@ -259,19 +295,16 @@ class SourceService(Service):
         seq = message.header.seq
         self.publish("camera/frame", message)
         self.last_seq = seq
-        self.sent += 1
-        if self.window:
-            now = time.monotonic()
-            if not self.in_flight:
-                self.last_progress = now
-            self.in_flight[seq] = message
-            if self.flow is not None:
-                self.flow.sent(seq, now)
+        self.replay.sent(seq, message, time.monotonic())
 
     def _read(self) -> CameraFrame | None:
         """The next frame's message (None after the last)."""
-        frame = self._next_frame()
-        return frame_message(frame, self.header(frame.seq, frame.stamp, "camera")) if frame is not None else None
+        frame = self.feed.next()
+        if frame is None:
+            return None
+        # A replay taking every step-th frame numbers them as its source does: step apart, no gap.
+        header = self.header(frame.seq, frame.stamp, "camera").model_copy(update={"stride": 1 if self.live else self.config.step})
+        return frame_message(frame, header)
 
     def _read_ahead(self) -> None:
         """While the window is full, read (decode, render) the next frame of a replay, so that it
@@ -282,41 +315,6 @@ class SourceService(Service):
             self.ready = self._read()
             self.finished = self.ready is None
 
-    def _next_frame(self) -> Frame | None:
-        """The next frame, as sent: with `loop`, lap after lap."""
-        frame = next(self.iterator, None)
-        if frame is None and self.config.loop and self.first is not None:
-            self._new_lap()
-            frame = next(self.iterator, None)
-        if frame is None:
-            return None
-        lap_start = self.laps > 0 and self.last is not None and self.last.seq > frame.seq
-        previous, self.last = self.last, frame
-        if self.first is None:
-            self.first = frame
-        if self.laps == 0:
-            return frame
-        if lap_start and previous.ground_truth is not None and frame.ground_truth is not None:
-            # The dataset's first frame has no motion of its own; on a new lap it moved from the last one.
-            frame = dataclasses.replace(frame, odometry=planar_motion(previous.ground_truth, frame.ground_truth))
-        return dataclasses.replace(frame, seq=frame.seq + self.seq_offset, stamp=frame.stamp + self.stamp_offset)
-
-    def _lap_length(self, first: Frame, last: Frame) -> tuple[int, float]:
-        """How far seq and the stamps go on per lap: to one frame step after the last frame's."""
-        span = last.seq - first.seq
-        step = self.config.step
-        return span + step, (last.stamp - first.stamp) * (span + step) / span if span else 0.0
-
-    def _new_lap(self) -> None:
-        """Go on from the first frame."""
-        seqs, stamps = self._lap_length(self.first, self.last)
-        self.seq_offset += seqs
-        self.stamp_offset += stamps
-        self.laps += 1
-        self.iterator = iter(self.frames)
-        log.info("source: lap %d done (%d frames sent); starting lap %d at seq %d", self.laps, self.sent, self.laps + 1,
-                 self.first.seq + self.seq_offset)
-
     def _resume(self) -> None:
         """Start at the last frame every running service has handled (module docstring)."""
         self.resume_checked = True
@@ -326,44 +324,29 @@ class SourceService(Service):
             log.info("source: no running service has handled a frame; starting at the first")
             return
         seq = min(handled)
-        if not hasattr(self.frames, "iterate"):
+        if not self.feed.can_resume:
             log.warning("source: the running services have handled frame %d, but this source cannot start mid-run; "
                         "starting at its first frame", seq)
             return
-        if self.config.loop:   # the lap of that frame, and the offsets of seq and stamps in it
-            self.first, last = self.frames[0], self.frames[len(self.frames) - 1]
-            lap_seqs, lap_stamps = self._lap_length(self.first, last)
-            self.laps = max(seq - self.first.seq, 0) // lap_seqs
-            self.seq_offset, self.stamp_offset = self.laps * lap_seqs, self.laps * lap_stamps
-        index = bisect.bisect_left(self.frames.seqs, seq - self.seq_offset)
-        if self.config.loop and index == len(self.frames):   # past the lap's last frame: the next lap comes
-            self.last = last
-        self.iterator = self.frames.iterate(index)
+        index = self.feed.resume_at(seq)
         log.info("source: the running services have all handled frame %d; resuming there (lap %d, frame %d of %d)",
                  seq, self.laps + 1, index, len(self.frames))
 
-    def _resend(self, reason: str) -> None:
+    def _resend(self, resend: Resend) -> None:
         if self.live:   # old frames of a live camera are worth nothing: make room for the newest
-            log.warning("source: %s; giving up the %d frames in flight (live camera)", reason, len(self.in_flight))
-            self.abandoned += len(self.in_flight)
-            self.in_flight.clear()
-            self.last_progress = time.monotonic()
+            log.warning("source: %s; giving up the %d frames in flight (live camera)", resend.reason, resend.abandoned)
             return
-        log.warning("source: %s; sending the %d frames in flight again (from %d)", reason, len(self.in_flight),
-                    next(iter(self.in_flight)))
-        # The last acknowledged frames go first: every stage has handled them (they replay their
-        # outputs), and an estimator restarted downstream runs its block again from them, so the
-        # frames in flight get the increments an uninterrupted run gives them, not a first-frame zero.
-        for message in [*self.acknowledged, *self.in_flight.values()]:
+        log.warning("source: %s; sending the %d frames in flight again (from %d)", resend.reason, resend.in_flight,
+                    resend.first)
+        for message in resend.frames:
             self.publish("camera/frame", message)
-        if self.flow is not None:
-            self.flow.resent()
-        self.resent += len(self.in_flight)
-        self.last_progress = time.monotonic()
+        self.replay.resend_done(time.monotonic())
 
     def extra_counters(self) -> dict[str, float]:
-        extra = {"frames_sent": self.sent, "in_flight": len(self.in_flight), "frames_resent": self.resent,
+        extra = {"frames_sent": self.sent, "in_flight": len(self.replay.in_flight), "frames_resent": self.resent,
                  "frames_unreadable": len(getattr(self.frames, "unreadable", ()))}
+        if self.completed:   # observers (the viewer) show the run as finished
+            extra["finished"] = 1
         if self.flow is not None:
             extra["window"] = self.flow.limit
             if self.flow.rate is not None and self.flow.min_latency is not None:
@@ -371,7 +354,9 @@ class SourceService(Service):
                 extra["window_min_latency_ms"] = round(1e3 * self.flow.min_latency, 1)
         if self.live:
             extra["frames_dropped"] = getattr(self.frames, "frames_dropped", 0)
-            extra["frames_abandoned"] = self.abandoned
+            extra["frames_abandoned"] = self.replay.abandoned
+        for kind, count in getattr(self.frames, "counters", {}).items():   # a ros2: source's bad input
+            extra[f"ros2_{kind}"] = count
         return {**super().extra_counters(), **extra}
 
     def _pipeline_ready(self) -> bool:
@@ -397,19 +382,10 @@ class SourceService(Service):
     def _pause(self, seconds: float = 0.002) -> None:
         self._stop.wait(seconds)
 
-    def _note_waiting(self) -> None:
-        now = time.monotonic()
-        if self.waiting_since is None:
-            self.waiting_since = now
-        elif now - self.waiting_since >= WAIT_LOG_PERIOD_S:
-            log.warning("source: waited %.0f s for %s of frame %d", now - self.waiting_since, self.config.ack_topic,
-                        next(iter(self.in_flight)))
-            self.waiting_since = now
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or "
-                                         "rosbag:PATH")
+    parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
+                                         "rosbag:PATH or ros2:TOPIC")
     parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, irat, or a preset file")
     parser.add_argument("--calibration", type=Path, help="calibration TOML file")
     add_fov_argument(parser)
@@ -417,7 +393,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start", type=int, help="first frame index")
     parser.add_argument("--origin", type=int, help="frame whose pose is the ground truth's origin (default: --start)")
     parser.add_argument("--stop", type=int, help="frame index to stop before")
-    parser.add_argument("--step", type=int, help="take every step-th frame")
+    parser.add_argument("--stride", dest="step", type=int, metavar="N", help="take every N-th frame (default 1)")
+    add_renamed_flag(parser, "--step", "--stride", dest="step", type=int)
     parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
     parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control); with "
                                                    "the adaptive window, the most")
@@ -435,6 +412,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start where the running services are (a source restarted mid-run)")
     add_world_arguments(parser)
     add_bag_arguments(parser)
+    from services.ros.node import add_graph_arguments
+
+    add_graph_arguments(parser)
 
 
 def add_fov_argument(parser: argparse.ArgumentParser) -> None:
@@ -455,4 +435,9 @@ def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     frames = open_source(config.source, start=config.start, stop=config.stop, step=config.step, preset=config.preset,
                          calibration=config.calibration, mono=config.mono, origin=config.origin, world=config.world(),
                          topics=bag_settings(config), fov=config.fov)
-    return SourceService(runtime, config, frames, args.instance).run()
+    graph = None
+    if config.source.startswith("ros2:"):
+        from services.ros.node import Ros2Config, graph_flags, graph_params, load_graph_config
+
+        graph = graph_params(load_graph_config(Ros2Config, graph_flags(args), args.config))
+    return SourceService(runtime, config, frames, args.instance, graph=graph).run()

@@ -7,6 +7,7 @@
     camera:N        live camera N (or a device path / stream URL), newest frame only (camera.LiveCamera)
     synthetic:SEED  procedural world rendered on the fly (synthetic.SyntheticWorld)
     rosbag:PATH     ROS 1 .bag, or ROS 2 bag folder / .db3 / .mcap file (rosbag.RosbagSource; extra `ros`)
+    ros2:TOPIC      live ROS 2 image topic over Zenoh, newest frame only (ros2.Ros2Source; extra `ros`)
 
 A preset (``services/source/presets/<name>.toml``) is a flat TOML table of calibration keys
 (calibration.py) and source settings (``fps``, ``grey``, the topics of a ROS bag, and for the
@@ -29,16 +30,16 @@ from services.source.calibration import CALIBRATION_KEYS, DEFAULT_FOV_DEG, assum
 from services.source.frames import Camera, FrameSource, SourceError
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
-KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag")
+KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag", "ros2")
 MONOCULAR_KINDS = ("images", "video", "camera")   # without a calibration, a pinhole camera is assumed (``fov``)
 # The settings of a ROS bag (rosbag.RosbagSource): preset keys, config keys and flags of the same
 # names, shared by `gridslam run`, `odometry` and the source service.
 BAG_FLAG_HELP = {
     "image_topic": "ROS bag: image topic, sensor_msgs/Image or CompressedImage (default: the bag's only one)",
-    "right_image_topic": "ROS bag: right image topic of a stereo pair, matched by stamp",
-    "camera_info_topic": "ROS bag: sensor_msgs/CameraInfo topic (default: the image topic's camera_info)",
-    "odom_topic": "ROS bag: nav_msgs/Odometry topic (passthrough estimator; ground truth where the run has none)",
-    "stereo_tolerance": "ROS bag: seconds between the stamps of a stereo pair, at most (default 0.005)",
+    "right_image_topic": "ROS bag or ros2: right image topic of a stereo pair, matched by stamp",
+    "camera_info_topic": "ROS bag or ros2: sensor_msgs/CameraInfo topic (a bag's default: the image topic's camera_info)",
+    "odom_topic": "ROS bag or ros2: nav_msgs/Odometry topic (passthrough estimator; ground truth where the run has none)",
+    "stereo_tolerance": "ROS bag or ros2: seconds between the stamps of a stereo pair, at most (default 0.005)",
 }
 # Source settings a preset may hold besides the calibration, with their types.
 SETTINGS: dict[str, type] = {"fps": float, "grey": bool, "fov": float,
@@ -205,7 +206,9 @@ def open_source(
     preset_fov = settings.pop("fov", None)
     fov = fov if fov is not None else preset_fov
     source = _open(kind, target, spec, preset, settings, camera, grey, fps, mono, origin, bag,
-                   dict(start=start, stop=stop, step=step))
+                   dict(start=start, stop=stop, step=step), fov)
+    if kind == "ros2":   # its camera comes with the stream
+        return source
     source.camera_assumed = False
     if kind in MONOCULAR_KINDS and source.camera is None:
         width, height = source.image_size
@@ -214,7 +217,7 @@ def open_source(
     return source
 
 
-def _open(kind, target, spec, preset, settings, camera, grey, fps, mono, origin, bag, selection) -> FrameSource:
+def _open(kind, target, spec, preset, settings, camera, grey, fps, mono, origin, bag, selection, fov) -> FrameSource:
     # A bag may be a recording of the synthetic world: the world's keys then describe what it holds.
     if kind not in ("synthetic", "rosbag") and settings:
         raise ConfigError(f"preset {preset}: key {next(iter(settings))!r} applies to the synthetic world only")
@@ -237,6 +240,11 @@ def _open(kind, target, spec, preset, settings, camera, grey, fps, mono, origin,
         if unknown:
             raise ConfigError(f"unknown ROS bag setting {unknown[0]!r}")
         return RosbagSource(target, camera=camera, grey=grey, mono=mono, origin=origin, **bag, **selection)
+    if kind == "ros2":
+        from services.source.ros2 import Ros2Source
+
+        live = {key: value for key, value in bag.items() if key != "image_topic"}
+        return Ros2Source(target, camera=camera, grey=grey, mono=mono, fov=fov, **live, **selection)
     if kind == "camera":
         from services.source.camera import LiveCamera
 

@@ -29,7 +29,6 @@ previous selected frame ((0, 0, 0) for the first).
 
 from __future__ import annotations
 
-import bisect
 import dataclasses
 import math
 from dataclasses import dataclass
@@ -40,24 +39,14 @@ import numpy as np
 from services.common.errors import ConfigError
 from services.source.datasets import IndexedSource
 from services.source.frames import Camera, Frame
+from services.source.world.campus import campus_layout
+from services.source.world.layout import LAMP_SPACING, PILLAR_SIZE
+from services.source.world.route import Route
+from services.source.world.textures import (
+    BLUR_LEVELS, LARGE_PLANE_TEXELS_PER_M, LARGE_STRIP_ROW, LARGE_WALL_TEXELS_PER_M, PAD, PLANE_TEXELS_PER_M, STRIP_ROW,
+    WALL_TEXELS_PER_M, blur_levels, lamp_light, paint_plane, paint_wall,
+)
 
-# Texture resolutions (texels per metre): walls are seen from 1.5 m, floor and ceiling at
-# grazing angles from 2 m on, so they need fewer.
-WALL_TEXELS_PER_M = 100.0
-PLANE_TEXELS_PER_M = 64.0
-# The wall texture is one long strip (all walls end to end) folded into rows of this width:
-# cv2.remap works on images narrower than 32767 pixels.
-STRIP_ROW = 4096
-# The campus has ten times the walls and thirty times the floor: coarser textures keep its
-# atlases near 200 MB (docs/sources.md) and inside cv2.remap's 32767-pixel limit.
-LARGE_WALL_TEXELS_PER_M = 64.0
-LARGE_PLANE_TEXELS_PER_M = 32.0
-LARGE_STRIP_ROW = 16384
-# Blur levels of the pre-filtered textures: level k suits a footprint of about 2**k texels.
-BLUR_LEVELS = 4
-PAD = 8  # texels between atlas bands, so bilinear sampling never reads the neighbouring band
-LAMP_SPACING = 3.0  # metres between ceiling lamps along the centre line
-PILLAR_SIZE = 0.3  # metres, square pillars
 LAYOUTS = ("corridor", "campus")
 # Worlds with more wall segments than this cast each ray against the segments near the camera
 # first, and against all only where those give no hit close enough to be sure (exact either way).
@@ -132,179 +121,6 @@ def default_camera(width: int = 320, height: int = 240, hfov_deg: float = 80.0, 
 
 
 # ---------------------------------------------------------------------------------------
-# The route: the corridor's centre line, a rectangle with rounded corners (radius = half
-# the corridor width), counter-clockwise, starting mid-way along the south side heading east.
-
-
-class Route:
-    """Arc-length parametrised centre line; ``at(s)`` gives position, heading and curvature.
-    ``Route(half_x, half_y, radius)`` is the corridor world's; ``Route.from_pieces`` any other."""
-
-    def __init__(self, half_x: float, half_y: float, radius: float):
-        a, b, r = half_x, half_y, radius
-        # (length, curvature) pieces; positions integrate from (0, -b) heading east.
-        pieces = [
-            (a - r, 0.0),
-            (math.pi * r / 2, 1 / r),
-            (2 * (b - r), 0.0),
-            (math.pi * r / 2, 1 / r),
-            (2 * (a - r), 0.0),
-            (math.pi * r / 2, 1 / r),
-            (2 * (b - r), 0.0),
-            (math.pi * r / 2, 1 / r),
-            (a - r, 0.0),
-        ]
-        self._integrate(pieces, (0.0, -b, 0.0))
-
-    @classmethod
-    def from_pieces(cls, pieces: list[tuple[float, float]], start: tuple[float, float, float]) -> Route:
-        """A route of (length, curvature) pieces from the pose ``start`` (x, y, heading)."""
-        route = cls.__new__(cls)
-        route._integrate(list(pieces), start)
-        return route
-
-    def _integrate(self, pieces: list[tuple[float, float]], start: tuple[float, float, float]) -> None:
-        self.pieces = pieces
-        self.starts = []  # (s0, x0, y0, heading0) of each piece
-        s, (x, y, h) = 0.0, start
-        for length, k in self.pieces:
-            self.starts.append((s, x, y, h))
-            x, y, h = self._advance(x, y, h, k, length)
-            s += length
-        self.length = s
-        self._ends = [s0 + length for (s0, _, _, _), (length, _) in zip(self.starts, self.pieces)]
-        # Heading gained per lap, a whole number of turns for a closed route.
-        self.lap_turn = 2 * math.pi * round(sum(length * k for length, k in self.pieces) / (2 * math.pi))
-
-    @staticmethod
-    def _advance(x: float, y: float, h: float, k: float, d: float) -> tuple[float, float, float]:
-        if k == 0:
-            return x + d * math.cos(h), y + d * math.sin(h), h
-        h1 = h + k * d
-        return x + (math.sin(h1) - math.sin(h)) / k, y - (math.cos(h1) - math.cos(h)) / k, h1
-
-    def curvatures(self, s: np.ndarray) -> np.ndarray:
-        """Curvature at every arc length of ``s`` (within one lap)."""
-        piece = np.minimum(np.searchsorted(self._ends, s), len(self.pieces) - 1)
-        return np.array([k for _, k in self.pieces])[piece]
-
-    def at(self, s: float) -> tuple[float, float, float, float]:
-        """(x, y, heading, curvature) at arc length ``s`` (taken modulo the route length)."""
-        s = s % self.length
-        index = bisect.bisect_left(self._ends, s)  # the first piece that ends at or after s
-        if index == len(self.pieces):
-            raise AssertionError("unreachable: s is within the route")
-        (s0, x0, y0, h0), (length, k) = self.starts[index], self.pieces[index]
-        x, y, h = self._advance(x0, y0, h0, k, s - s0)
-        return x, y, h, k
-
-
-# ---------------------------------------------------------------------------------------
-# Textures
-
-
-def _blur_levels(texture: np.ndarray, axis: str) -> list[np.ndarray]:
-    """Copies of ``texture`` pre-filtered for footprints of 1, 2, 4, 8 texels along ``axis``
-    ('x', 'y' or 'xy'): a Gaussian of σ ≈ footprint/2 suppresses what the pixel grid cannot hold."""
-    levels = [texture]  # uint8 in, uint8 out: cv2 blurs 8-bit images fastest
-    for k in range(1, BLUR_LEVELS):
-        sigma = 0.5 * 2**k
-        sx = sigma if "x" in axis else 0.01
-        sy = sigma if "y" in axis else 0.01
-        levels.append(cv2.GaussianBlur(texture, (0, 0), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_REFLECT))
-    return levels
-
-
-def _smooth_noise(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> np.ndarray:
-    """Zero-mean, unit-ish band-limited noise."""
-    noise = cv2.GaussianBlur(rng.standard_normal(shape).astype(np.float32), (0, 0), sigma)
-    return noise / (noise.std() + 1e-6)
-
-
-def _paint_wall(rng: np.random.Generator, width: int, height: int, res: float) -> np.ndarray:
-    """A wall strip of ``width``×``height`` texels: panels of varying style, each with
-    corners and edges for feature detectors, plus speckle at two scales."""
-    wall = np.empty((height, width), np.float32)
-    x = 0
-    while x < width:
-        panel = int(rng.uniform(0.8, 2.5) * res)
-        x1 = min(width, x + panel)
-        base = rng.uniform(70, 190)
-        wall[:, x:x1] = base
-        style = rng.integers(5)
-        region = wall[:, x:x1]
-        w = x1 - x
-        if style == 0:  # bricks: staggered rectangles with mortar
-            bh, bw = int(rng.uniform(0.07, 0.12) * res), int(rng.uniform(0.2, 0.35) * res)
-            for row, top in enumerate(range(0, height, bh)):
-                offset = (bw // 2) * (row % 2)
-                for left in range(-offset, w, bw):
-                    shade = base + rng.uniform(-25, 25)
-                    cv2.rectangle(region, (left + 1, top + 1), (left + bw - 2, top + bh - 2), float(shade), -1)
-                cv2.line(region, (0, top), (w, top), float(base - 50), 1)
-        elif style == 1:  # poster: a framed picture of random blocks at eye height
-            top, bottom = int(0.9 * res), int(rng.uniform(1.6, 2.0) * res)
-            left, right = int(0.1 * w), int(0.9 * w)
-            cv2.rectangle(region, (left - 3, height - bottom - 3), (right + 3, height - top + 3), float(base - 60), -1)
-            for _ in range(int(rng.integers(8, 20))):
-                px, py = rng.integers(left, max(left + 1, right)), rng.integers(height - bottom, height - top)
-                pw, ph = rng.integers(5, 40), rng.integers(5, 40)
-                cv2.rectangle(region, (int(px), int(py)), (int(min(px + pw, right)), int(min(py + ph, height - top))), float(rng.uniform(10, 250)), -1)
-        elif style == 2:  # door: dark leaf, lighter frame, a handle
-            dw = min(w - 4, int(0.9 * res))
-            left = (w - dw) // 2
-            cv2.rectangle(region, (left - 4, height - int(2.05 * res)), (left + dw + 4, height - 1), float(min(240, base + 50)), -1)
-            cv2.rectangle(region, (left, height - int(2.0 * res)), (left + dw, height - 1), float(rng.uniform(30, 80)), -1)
-            cv2.circle(region, (left + dw - 10, height - int(1.0 * res)), 4, 220.0, -1)
-            for y in (int(0.5 * res), int(1.4 * res)):
-                cv2.rectangle(region, (left + 8, height - y - 25), (left + dw - 8, height - y), float(rng.uniform(60, 110)), 2)
-        elif style == 3:  # shelves with boxes
-            for level in np.arange(0.3, 2.0, rng.uniform(0.35, 0.5)):
-                y = height - int(level * res)
-                cv2.line(region, (0, y), (w, y), float(base - 70), 3)
-                bx = int(rng.integers(0, 10))
-                while bx < w - 10:
-                    bw, bh = int(rng.integers(8, 30)), int(rng.integers(10, 30))
-                    cv2.rectangle(region, (bx, y - bh), (min(w - 1, bx + bw), y - 2), float(rng.uniform(20, 240)), -1)
-                    bx += bw + int(rng.integers(2, 12))
-        else:  # scattered marks: notices, switches, stickers
-            for _ in range(int(rng.integers(6, 16))):
-                px, py = int(rng.integers(0, w)), int(rng.integers(0, height))
-                size = int(rng.integers(4, 25))
-                cv2.rectangle(region, (px, py), (px + size, py + int(size * rng.uniform(0.5, 1.5))), float(rng.uniform(0, 255)), -1)
-        cv2.line(wall, (x, 0), (x, height), float(base - 40), 2)  # panel joint
-        x = x1
-    wall[height - int(0.1 * res):, :] *= 0.5  # skirting board
-    wall += 12 * _smooth_noise(rng, wall.shape, 6.0) + 6 * _smooth_noise(rng, wall.shape, 1.0)
-    return wall
-
-
-def _paint_plane(rng: np.random.Generator, shape: tuple[int, int], res: float, tile: float, base: float, spread: float) -> np.ndarray:
-    """Floor or ceiling: tiles of ``tile`` metres, each a slightly different shade, grout
-    lines between them, stains and fine texture."""
-    height, width = shape
-    step = int(tile * res)
-    shades = rng.uniform(base - spread, base + spread, size=(height // step + 1, width // step + 1)).astype(np.float32)
-    plane = cv2.resize(shades, (shades.shape[1] * step, shades.shape[0] * step), interpolation=cv2.INTER_NEAREST)[:height, :width].copy()
-    plane[::step, :] -= 35
-    plane[:, ::step] -= 35
-    for _ in range(int(width * height / res**2 * 0.8)):  # stains, about one per 1.25 m²
-        centre = (int(rng.integers(0, width)), int(rng.integers(0, height)))
-        axes = (int(rng.integers(2, 12)), int(rng.integers(2, 12)))
-        cv2.ellipse(plane, centre, axes, float(rng.uniform(0, 180)), 0, 360, float(rng.uniform(base - 70, base + 40)), -1)
-    plane += 8 * _smooth_noise(rng, plane.shape, 4.0) + 5 * _smooth_noise(rng, plane.shape, 1.0)
-    return plane
-
-
-def _lamp_light(points: np.ndarray, lamps: np.ndarray, height_below_lamp: np.ndarray | float) -> np.ndarray:
-    """Illumination gain at points ``height_below_lamp`` under the ceiling, from ceiling lamps
-    at ``lamps`` (x, y): ambient plus a smooth inverse-square falloff 1/(1 + d²/2 m²)."""
-    below2 = np.asarray(height_below_lamp, np.float32) ** 2
-    gain = sum(0.9 / (1.0 + (((points - lamp) ** 2).sum(axis=-1) + below2) / 2.0) for lamp in lamps)
-    return np.minimum(0.45 + gain, 1.25).astype(np.float32)
-
-
-# ---------------------------------------------------------------------------------------
 
 
 class SyntheticWorld(IndexedSource):
@@ -338,8 +154,6 @@ class SyntheticWorld(IndexedSource):
             self.route = Route(config.length / 2, config.breadth / 2, config.corridor_width / 2)
             self._build_walls(rng)
         else:
-            from services.source.campus import campus_layout
-
             self._wall_res, self._plane_res, self._strip_row = LARGE_WALL_TEXELS_PER_M, LARGE_PLANE_TEXELS_PER_M, LARGE_STRIP_ROW
             self.layout = campus_layout(config.corridor_width, config.pillar_spacing, rng)
             self.route = self.layout.route
@@ -506,7 +320,7 @@ class SyntheticWorld(IndexedSource):
         c = self.config
         res = self._wall_res
         wall_texels = int(math.ceil(c.wall_height * res))
-        wall = _paint_wall(rng, self._strip_length, wall_texels, res)
+        wall = paint_wall(rng, self._strip_length, wall_texels, res)
         lamps = self.lamps.astype(np.float32)
         if not self._dynamic_light:
             # Light baked per texel: the wall point's world position from its strip coordinate
@@ -517,7 +331,7 @@ class SyntheticWorld(IndexedSource):
             t = np.clip((along - self._segment_offset[segment]) / res / self._segment_length[segment], 0, 1)
             points = self.segments[segment, :2] + t[:, None] * self.segments[segment, 2:]
             heights = c.wall_height - (np.arange(wall_texels) + 0.5) / res  # height above floor of each texel row
-            light = _lamp_light(points[None, ::4, :].astype(np.float32), lamps, (c.wall_height - heights)[:, None])
+            light = lamp_light(points[None, ::4, :].astype(np.float32), lamps, (c.wall_height - heights)[:, None])
             wall *= cv2.resize(light, (self._strip_length, wall_texels), interpolation=cv2.INTER_LINEAR)
         wall = np.clip(wall, 0, 255).astype(np.uint8)
         # Fold the strip into rows; every (x-level, y-level) pair of blur gets its own band.
@@ -533,8 +347,8 @@ class SyntheticWorld(IndexedSource):
         self._wall_rows_texels = wall_texels + PAD
         # Filled band by band: a large world's atlas is too big to hold twice.
         self._wall_atlas = np.empty((BLUR_LEVELS**2 * self._wall_band, row_width), np.uint8)
-        for i, level_x in enumerate(_blur_levels(folded, "x")):
-            for j, level_y in enumerate(_blur_levels(level_x, "y")):
+        for i, level_x in enumerate(blur_levels(folded, "x")):
+            for j, level_y in enumerate(blur_levels(level_x, "y")):
                 self._wall_atlas[(i * BLUR_LEVELS + j) * self._wall_band:(i * BLUR_LEVELS + j + 1) * self._wall_band] = level_y
 
         # Floor and ceiling cover the world's extent; world (x, y) → texel (col, row).
@@ -556,11 +370,11 @@ class SyntheticWorld(IndexedSource):
         def lit(plane: np.ndarray, height_below_lamp: float) -> np.ndarray:
             if self._dynamic_light:
                 return plane
-            light = _lamp_light(ground, lamps, height_below_lamp)
+            light = lamp_light(ground, lamps, height_below_lamp)
             return plane * cv2.resize(light, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
 
-        floor = lit(_paint_plane(rng, shape, res, 0.5, 115, 20), c.wall_height)
-        ceiling = lit(_paint_plane(rng, shape, res, 0.6, 175, 8), 0.6)
+        floor = lit(paint_plane(rng, shape, res, 0.5, 115, 20), c.wall_height)
+        ceiling = lit(paint_plane(rng, shape, res, 0.6, 175, 8), 0.6)
         for (lx, ly), heading in zip(self.lamps, self._lamp_headings):  # the lamps: bright panels across the corridor
             col, row = int((lx - origin_x) * res), int((ly - origin_y) * res)
             long_side, short_side = int(0.6 * res), int(0.15 * res)
@@ -578,7 +392,7 @@ class SyntheticWorld(IndexedSource):
         self._plane_band = shape[0] + PAD
         bands = []
         for plane in (floor, ceiling):
-            for level in _blur_levels(np.clip(plane, 0, 255).astype(np.uint8), "xy"):
+            for level in blur_levels(np.clip(plane, 0, 255).astype(np.uint8), "xy"):
                 bands += [level, np.zeros((PAD, shape[1]), np.uint8)]
         self._plane_atlas = np.concatenate(bands)
 
@@ -615,7 +429,7 @@ class SyntheticWorld(IndexedSource):
 
     def _light(self, x: float, y: float, yaw: float, depth: np.ndarray, time: float | None) -> np.ndarray:
         """Light (gain) at every pixel: the lamps' light at the world point each pixel sees, as
-        the baked light's formula (_lamp_light) with every lamp's intensity and the level,
+        the baked light's formula (lamp_light) with every lamp's intensity and the level,
         computed every LIGHT_STEP pixels and interpolated."""
         c = self.config
         level, on = self.lighting(time)
@@ -773,82 +587,3 @@ class SyntheticWorld(IndexedSource):
             ground_truth=self._anchor @ self.camera_matrix(seq),
             odometry=odometry,
         )
-
-
-# ---------------------------------------------------------------------------------------
-# Revisits from the ground truth
-
-
-@dataclass(frozen=True)
-class Revisit:
-    """A stretch of the route that passes a place seen before: frames ``frames[0]``…``frames[1]``
-    (inclusive) of the later pass, matched to the earlier pass's ``earlier[0]``…``earlier[1]``."""
-
-    frames: tuple[int, int]
-    earlier: tuple[int, int]
-    length: float  # metres driven over the later pass's frames
-    direction: str  # "same" or "opposite": the later pass's heading against the earlier one's
-    lookalike: bool  # True: not the same place but its look-alike (campus.Twin)
-    distance: float  # median distance (m) between the matched places: the sway for a revisit, the offset for a look-alike
-
-
-def revisits(world: SyntheticWorld, radius: float = 1.0, separation: float = 30.0, min_length: float = 2.0) -> list[Revisit]:
-    """The revisits of a world's route, from its exact poses, and the passes of look-alike places.
-
-    Frame i revisits frame j < i when they stand within ``radius`` metres, more than
-    ``separation`` metres of route apart, heading within 45° of each other (same direction)
-    or of the opposite. For each direction on its own, each frame takes the most recent such j
-    (and the nearest frame of that pass); runs of consecutive frames whose matched frames
-    advance steadily form a Revisit (``min_length`` metres or more). So a stretch driven
-    before both ways appears twice, once per direction. A look-alike pass is found the same
-    way between a twin region's frames shifted by its offset and its original's frames, in
-    whichever order they were driven."""
-    poses = world.poses
-    count = len(poses)
-    along = np.array([world.distance(seq) for seq in range(count)])
-    everywhere = np.ones(count, bool)
-    found = []
-    for direction in ("same", "opposite"):
-        found += _revisit_runs(poses, poses[:, :2], along, everywhere, everywhere, radius, separation, direction, False)
-        for twin in world.layout.twins if world.layout is not None else ():
-            inside = in_region(poses[:, :2], twin.region)
-            moved = in_region(poses[:, :2], twin.moved())
-            mapped = poses[:, :2] - np.where(moved[:, None], np.asarray(twin.offset), 0.0)
-            found += _revisit_runs(poses, mapped, along, inside, moved, radius, 0.0, direction, True)
-            found += _revisit_runs(poses, mapped, along, moved, inside, radius, 0.0, direction, True)
-    return sorted((r for r in found if r.length >= min_length), key=lambda r: (r.frames, r.lookalike, r.direction))
-
-
-def in_region(points: np.ndarray, region: tuple[float, float, float, float]) -> np.ndarray:
-    """Which of the points (N×2) lie in the region (x0, x1, y0, y1), borders included."""
-    x0, x1, y0, y1 = region
-    return (points[:, 0] >= x0) & (points[:, 0] <= x1) & (points[:, 1] >= y0) & (points[:, 1] <= y1)
-
-
-def _revisit_runs(poses, points, along, earlier_ok, later_ok, radius, separation, direction, lookalike) -> list[Revisit]:
-    """Revisits in ``direction`` of frames ``later_ok`` to earlier frames ``earlier_ok``, matched on ``points``."""
-    from scipy.spatial import cKDTree
-
-    pairs = cKDTree(points).sparse_distance_matrix(cKDTree(points), radius, output_type="ndarray")
-    i, j, gap = pairs["i"], pairs["j"], pairs["v"]
-    turn = np.cos(poses[i, 2] - poses[j, 2])
-    aligned = (turn if direction == "same" else -turn) >= math.cos(math.radians(45))
-    keep = (j < i) & later_ok[i] & earlier_ok[j] & (along[i] - along[j] >= separation) & aligned
-    i, j, gap = i[keep], j[keep], gap[keep]
-    if not len(i):
-        return []
-    # Each frame's most recent earlier pass, and in it the nearest frame.
-    latest = np.zeros(len(poses), int)
-    np.maximum.at(latest, i, j)
-    same_pass = along[latest[i]] - along[j] <= 2 * radius
-    i, j, gap = i[same_pass], j[same_pass], gap[same_pass]
-    order = np.lexsort((gap, i))
-    first = order[np.r_[True, np.diff(i[order]) > 0]]
-    frames, matched = i[first], j[first]
-    runs = np.split(np.arange(len(frames)), np.flatnonzero((np.diff(frames) != 1) | (np.abs(np.diff(matched)) > 10)) + 1)
-    return [
-        Revisit((int(frames[run[0]]), int(frames[run[-1]])), (int(matched[run[0]]), int(matched[run[-1]])),
-                float(along[frames[run[-1]]] - along[frames[run[0]]]), direction, lookalike,
-                float(np.median(np.hypot(*(poses[frames[run], :2] - poses[matched[run], :2]).T))))
-        for run in runs
-    ]

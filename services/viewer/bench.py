@@ -17,7 +17,6 @@ and of this thread's CPU time (the machine may be shared: the load average is pr
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -37,6 +36,7 @@ from schemas import CameraFrame, EgoMotion, GridActivity, GridPose, Header, MapP
 from services.common import codec, topics
 from services.common.convert import image_to_msg, planar_pose
 from services.common.runtime import RuntimeConfig, open_session
+from services.common.settings import CommandParser
 from services.viewer.config import ViewerConfig
 from services.viewer.service import ViewerService
 from services.viewer.state import Cursor, encode_camera_jpeg, encode_lattice_png
@@ -57,7 +57,7 @@ def header(seq: int) -> Header:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench viewer", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="gridslam bench viewer", description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=300, help="timed repetitions per row (default 300)")
     parser.add_argument("--frames", type=int, default=8000, help="frames of history before the view rows (default 8000)")
     parser.add_argument("--experiences", type=int, default=2000, help="experiences in the map (default 2000)")

@@ -26,16 +26,17 @@ from urllib.parse import urlsplit
 import zenoh
 
 from schemas import (
-    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate, ServiceStatus,
-    ViewTemplate,
+    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate,
+    ServiceStatus, ViewTemplate,
 )
 from services.common import codec, topics
 from services.common.config import load_config
 from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.errors import ConfigError
-from services.common.runtime import RuntimeConfig
+from services.common.observe import map_items, observe
+from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
-from services.viewer.config import ViewerConfig, is_loopback
+from services.viewer.config import ViewerConfig
 from services.viewer.state import Cursor, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png
 
 log = logging.getLogger(__name__)
@@ -104,16 +105,11 @@ class ViewerService(Service):
         self.http.server_close()
 
     def setup(self) -> None:
-        # Every sample of the topics that draw a path or build the map; the newest only of the heavy
-        # or momentary ones. drop_stale=False: a seq going backwards is a new run, shown afresh.
-        self.subscribe("egomotion", self.on_egomotion, drop_stale=False, follows=lambda message: message.previous_seq)
-        self.subscribe("grid/pose", self.on_grid_pose, drop_stale=False)
-        self.subscribe("map/pose", self.on_map_pose, drop_stale=False)
-        self.subscribe("map/update", self.on_map_update, drop_stale=False, sparse=True)
-        self.subscribe("loop/closure", self.on_loop_closure, drop_stale=False, sparse=True)
-        self.subscribe("camera/frame", self.on_camera_frame, newest_only=True, drop_stale=False)
-        self.subscribe("grid/activity", self.on_grid_activity, newest_only=True, drop_stale=False)
-        self.subscribe("view/template", self.on_view_template, newest_only=True, drop_stale=False)
+        # A seq going backwards is a new run, shown afresh.
+        observe(self, {"egomotion": self.on_egomotion, "grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose,
+                       "map/update": self.on_map_update, "loop/closure": self.on_loop_closure,
+                       "map/route": self.on_map_route, "camera/frame": self.on_camera_frame,
+                       "grid/activity": self.on_grid_activity, "view/template": self.on_view_template})
         # Status messages of many services share one wildcard and carry no frame sequence of their
         # own, so they bypass the base's per-topic seq check; they are small and once a second.
         self._own_entities += [
@@ -152,7 +148,7 @@ class ViewerService(Service):
                                           message.experience_id, time.monotonic())
 
     def on_map_update(self, message: MapUpdate) -> None:
-        experiences, links = _map_items(message)
+        experiences, links = map_items(message)
         with self.lock:
             missing = self.viewer_state.on_map_update(message.header.seq, experiences, links,
                                                       message.experience_count, message.link_count)
@@ -164,6 +160,10 @@ class ViewerService(Service):
         with self.lock:
             self.viewer_state.on_loop_closure(message.frame, message.matched_frame, message.matched_template,
                                               message.votes)
+
+    def on_map_route(self, message: MapRoute) -> None:
+        with self.lock:
+            self.viewer_state.on_route([(pose.position.x, pose.position.y) for pose in message.poses])
 
     def on_camera_frame(self, message: CameraFrame) -> None:
         image = display_image(image_from_msg(message.left), message.left.encoding, self.config.camera_width)
@@ -225,7 +225,7 @@ class ViewerService(Service):
             self.counters.decode_errors += 1
             log.warning("viewer: dropped map snapshot: %s", error)
             return
-        experiences, links = _map_items(snapshot)
+        experiences, links = map_items(snapshot)
         with self.lock:
             self.viewer_state.on_map_snapshot(snapshot.header.seq, experiences, links)
 
@@ -266,13 +266,6 @@ class ViewerService(Service):
         data = encode_camera_jpeg(pixels) if which == "camera" else encode_lattice_png(pixels)
         self._image_cache[which] = (revision, data)
         return data
-
-
-def _map_items(message: MapUpdate | MapSnapshot) -> tuple[list[tuple[int, float, float]], list[tuple[int, int, int]]]:
-    """Experiences (id, x, y) and links (source, target, kind): kind 0 odometric, 1 a closure the map
-    kept, 2 one it refused."""
-    return ([(e.id, e.x, e.y) for e in message.experiences],
-            [(link.source, link.target, 0 if not link.loop_closure else 1 if link.accepted else 2) for link in message.links])
 
 
 def _read_static() -> dict[str, tuple[bytes, str]]:

@@ -11,11 +11,14 @@ the drawn path keeps every `stride`-th sample; when the path exceeds `max_points
 halved (every other point kept) and its `epoch` changes, so a browser that holds the old
 epoch is sent the whole path again, and one that holds the current epoch only the new tail.
 A `seq` that goes backwards starts the track afresh (a new run on the same robot).
+
+A run has finished when the source's status says so (`finished` among its counters: every
+frame sent and acknowledged); a service whose liveliness token is gone after a status saying
+`stopping` stopped, rather than died.
 """
 
 from __future__ import annotations
 
-import math
 from collections import deque
 from dataclasses import dataclass, field
 from statistics import median
@@ -23,6 +26,7 @@ from statistics import median
 import cv2
 import numpy as np
 
+from services.common.geometry import planar_from_camera
 from services.gridcells.integrator import DeadReckoning, turn_first
 
 STAGES = ("ground_truth", "egomotion", "grid", "map")
@@ -121,6 +125,7 @@ class ViewerState:
         self.map_seq: int | None = None         # frame of the last map update or snapshot applied
         self.current_experience: int | None = None
         self.loop_closures: deque[dict] = deque(maxlen=LOOP_CLOSURES_SHOWN)
+        self.route: list[tuple[float, float]] = []   # the last route asked of the map (map/route)
         self.loop_closure_count = 0
         self.template: dict | None = None
         self.grid: dict | None = None          # lattice readout of the last grid/pose
@@ -137,6 +142,7 @@ class ViewerState:
         self._frame_times: deque[tuple[float, int]] = deque()
         self._arrivals: dict[int, float] = {}   # camera frame seq → arrival time (monotonic s)
         self._latency: dict[str, deque[float]] = {"grid": deque(maxlen=LATENCY_SAMPLES), "map": deque(maxlen=LATENCY_SAMPLES)}
+        self.finished: dict | None = None       # {"frames": sent} once the source said every frame is done
         self.revision = 0                       # bumped by every change, so idle streams can skip a tick
 
     # ----------------------------------------------------------------- inputs
@@ -216,6 +222,11 @@ class ViewerState:
         self._map_changed()
         return len(self.experiences) < experience_count or len(self.links) < link_count
 
+    def on_route(self, points: list[tuple[float, float]]) -> None:
+        """The last route planned on the map (its experiences' positions, start to goal)."""
+        self.route = list(points)
+        self._map_changed()
+
     def on_map_snapshot(self, seq: int, experiences: list[tuple[int, float, float]],
                         links: list[tuple[int, int, int]]) -> None:
         """The whole map as of frame `seq` (the `map/snapshot` reply). It replaces what is held,
@@ -246,6 +257,9 @@ class ViewerState:
         uptime and optionally `extra` (service-specific counters)."""
         row = self._service(service, instance)
         row.status, row.status_time = dict(counters), now
+        if service == "source":
+            extra = counters.get("extra") or {}
+            self.finished = {"frames": int(extra.get("frames_sent", 0))} if extra.get("finished") else None
         self.revision += 1
 
     # ----------------------------------------------------------------- output
@@ -274,6 +288,7 @@ class ViewerState:
                 "revision": self.map_revision,
                 "experiences": [(i, x, y) for i, (x, y) in sorted(self.experiences.items())],
                 "links": [[s, t, int(loop)] for (s, t), loop in self.links.items()],
+                "route": [[x, y] for x, y in self.route],
             }
             cursor.map_revision = self.map_revision
         if include_images:
@@ -309,6 +324,7 @@ class ViewerState:
             "gaps": sum(status["gaps"] for status in pipeline),
             "saturations": self.saturations,
             "services_alive": sum(row.alive for row in self.services.values()),
+            "finished": self.finished,
         }
 
     def rate(self, now: float) -> float:
@@ -324,8 +340,11 @@ class ViewerState:
         for (service, instance), row in sorted(self.services.items()):
             # A token without status messages (the router) is not silent; one whose status stopped is.
             silent = row.status_time is not None and now - row.status_time > self.params.silent_after_s
-            rows.append({"service": service, "instance": instance, "alive": row.alive, "silent": silent,
-                         **(row.status or {})})
+            # Gone after saying it was stopping: it stopped (at the end of a run, say), it did not die.
+            stopped = not row.alive and row.status is not None and row.status.get("state") == "stopping"
+            state = {"state": "stopped"} if stopped else {}
+            rows.append({"service": service, "instance": instance, "alive": row.alive, "silent": silent and not stopped,
+                         "stopped": stopped, **(row.status or {}), **state})
         return rows
 
     # ----------------------------------------------------------------- internals
@@ -338,6 +357,7 @@ class ViewerState:
         self.revision += 1
         if self.frame is not None and seq < self.frame and restarted:
             self._frame_times.clear()   # a new run: count its frames from here
+            self.finished = None
             self._arrivals = {s: t for s, t in self._arrivals.items() if s <= seq}
         elif self.frame is not None and seq <= self.frame:
             return
@@ -351,14 +371,6 @@ class ViewerState:
         arrival = self._arrivals.get(seq)
         if arrival is not None and now >= arrival:
             self._latency[stage].append(now - arrival)
-
-
-def planar_from_camera(matrix: np.ndarray) -> tuple[float, float, float]:
-    """Planar (x forward, y left, yaw counter-clockwise) pose of a camera pose given in the
-    camera convention (x right, y down, z forward): forward = z, left = −x, and the heading of
-    the optical axis, atan2(−R[0,2], R[2,2]) (docs/sources.md, Conventions)."""
-    m = np.asarray(matrix, dtype=float)
-    return float(m[2, 3]), float(-m[0, 3]), math.atan2(-m[0, 2], m[2, 2])
 
 
 def display_image(pixels: np.ndarray, encoding: str, max_width: int) -> np.ndarray:

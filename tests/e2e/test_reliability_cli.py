@@ -73,6 +73,8 @@ def cases(folder: Path) -> list[tuple[str, list[str], str]]:
         ("run: missing calibration", [*run, *SOURCE, "--calibration", str(missing)], str(missing)),
         ("run: calibration of the wrong type", [*run, *SOURCE, "--calibration", str(f["calibration_wrong_type"])], "fx"),
         ("run: zero frames", [*run, *SOURCE, "--n-frames", "0"], "n_frames"),
+        ("run: a bad flag value names the flag", [*run, *SOURCE, "--n-frames", "-3"], "--n-frames: "),
+        ("run: a bad stride names its flag (not its [run] key, step)", [*run, *SOURCE, "--stride", "0"], "--stride: "),
         ("run: malformed listen endpoint", ["run", *SOURCE, "--listen", "nowhere"], "nowhere"),
         ("demo: unknown preset", ["demo", "--listen", port, "--preset", "atlantis"], "atlantis"),
         ("demo: config value of the wrong type", ["demo", "--listen", port, "-c", str(f["run_wrong_type"])], "n_frames"),

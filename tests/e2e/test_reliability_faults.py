@@ -5,6 +5,7 @@ checked to hold every frame exactly once."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -93,6 +94,10 @@ def test_router_killed_mid_run_is_restarted_and_flow_resumes_within_a_second(tmp
     assert resumed - back < 1.5
     assert "camera/frame has subscribers again" in (out / "logs" / "source.log").read_text()
     assert map_frames(out) == list(range(FRAMES))   # nothing lost, nothing twice
+    # ... nor in what the run recorded of each stage (the runner's recorder is a client too)
+    stages = json.loads((out / "metrics.json").read_text())["stages"]
+    assert {name: (stage["frames"], stage["missing_frames"]) for name, stage in stages.items()} == \
+        dict.fromkeys(stages, (FRAMES, 0)), stages
     assert "router exited with code -9; restart 1" in err
 
 

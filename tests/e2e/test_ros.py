@@ -2,6 +2,10 @@
 
 - a run serves Foxglove live: a WebSocket client speaking the Foxglove protocol subscribes to
   /gridslam/map during the run and receives its poses;
+- the finished run is served on until Ctrl-C: the run prints where (viewer and Foxglove), the
+  npm `@foxglove/ws-protocol` client, offering only `foxglove.websocket.v1`, connects after the
+  last frame and receives every channel of the run, a headless browser opening the viewer then
+  shows the run finished, and SIGINT ends it all with exit code 0;
 - the run's run.mcap, read back with the mcap reader and mcap-ros2-support: one Odometry per
   frame and stage equal to the TUM files, and the last MarkerArray's experiences equal to
   `gridslam map export`'s graph; `gridslam export mcap` writes it again from the folder;
@@ -11,11 +15,15 @@
 
 from __future__ import annotations
 
+import base64
 import json
+import signal
 import struct
 import subprocess
 import threading
 import time
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,8 +39,11 @@ from websockets.sync.client import connect   # noqa: E402
 
 from services.evaluation.trajectory import read_tum   # noqa: E402
 from services.source import open_source   # noqa: E402
+from services.ros.messages import TOPICS   # noqa: E402
+from tests import npm_foxglove   # noqa: E402
 from tests.bags import ODOM, image_topic, write_bag   # noqa: E402
-from tests.netutil import GRIDSLAM, REPO, endpoint, free_port   # noqa: E402
+from tests.browser import Browser, chromium_and_driver   # noqa: E402
+from tests.netutil import GRIDSLAM, REPO, endpoint, free_port, port_open, start, wait_for   # noqa: E402
 
 pytestmark = pytest.mark.e2e
 
@@ -110,20 +121,55 @@ def read_mcap(path):
     return messages
 
 
+@dataclass
+class ServedRun:
+    """`gridslam run --foxglove PORT --view HOST:PORT` on recorded frames, still serving the
+    finished run: its process, ports and output so far."""
+
+    out: Path
+    client: FoxgloveClient
+    process: subprocess.Popen
+    ports: dict[str, int]
+    stdout: list[str] = field(default_factory=list)
+    stderr: list[str] = field(default_factory=list)
+
+    def read(self) -> None:
+        for stream, lines in ((self.process.stdout, self.stdout), (self.process.stderr, self.stderr)):
+            threading.Thread(target=lambda s=stream, kept=lines: kept.extend(s), daemon=True).start()
+
+
 @pytest.fixture(scope="module")
-def synthetic_run(tmp_path_factory):
-    """The reference run, served live to a Foxglove client subscribed to /gridslam/map."""
+def served_run(tmp_path_factory):
+    """The reference run, served live to a Foxglove client subscribed to /gridslam/map, and
+    served on once it has finished, until the test that presses Ctrl-C (or the module's end)."""
     out = tmp_path_factory.mktemp("synthetic") / "results"
-    port = free_port()
-    client = FoxgloveClient(port, "/gridslam/map")
+    ports = {"foxglove": free_port(), "viewer": free_port(), "router": free_port()}
+    client = FoxgloveClient(ports["foxglove"], "/gridslam/map")
     client.start()
+    process = start(["run", "--source", "synthetic:0", *RUN, "--listen", endpoint(ports["router"]), "--out", str(out),
+                     "--foxglove", str(ports["foxglove"]), "--view", f"127.0.0.1:{ports['viewer']}"])
+    run = ServedRun(out, client, process, ports)
+    run.read()
     try:
-        gridslam(["run", "--source", "synthetic:0", *RUN, "--listen", endpoint(free_port()), "--out", str(out),
-                  "--foxglove", str(port)])
-    finally:
+        wait_for(lambda: any("serving it until Ctrl-C" in line for line in run.stdout) or process.poll() is not None,
+                 timeout=300, period=0.2)
+        assert process.poll() is None, "".join(run.stderr)[-3000:]
         client.halt.set()
         client.join(timeout=10)
-    return out, client
+        yield run
+    finally:
+        client.halt.set()
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(served_run):
+    return served_run.out, served_run.client
 
 
 def test_foxglove_client_receives_map_poses_during_the_run(synthetic_run):
@@ -135,9 +181,10 @@ def test_foxglove_client_receives_map_poses_during_the_run(synthetic_run):
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     poses = [store.deserialize_cdr(data, "nav_msgs/msg/Odometry") for _, data in client.messages]
-    # The client subscribed once the server was up, a few frames into the run at most; from
-    # then on it got every map pose, each equal to the one the run wrote for that frame.
-    assert len(poses) >= FRAMES // 2
+    # The client subscribed once the server was up, a few frames into the run at most: it got
+    # the poses published before it subscribed, then every new one, each equal to the one the
+    # run wrote for that frame, none twice.
+    assert len(poses) == FRAMES
     reference = read_tum(out / "map_online.tum")
     by_stamp = {round(float(s) * 1e9): p for s, p in zip(reference.stamps, reference.positions)}
     for log_time, pose in zip((t for t, _ in client.messages), poses):
@@ -146,6 +193,95 @@ def test_foxglove_client_receives_map_poses_during_the_run(synthetic_run):
         assert [pose.pose.pose.position.x, pose.pose.pose.position.y] == list(by_stamp[stamp][:2])
     stamps = [t for t, _ in client.messages]
     assert stamps == sorted(set(stamps)) and stamps[-1] == max(by_stamp)
+
+
+def test_the_run_says_where_it_serves_and_serves_the_finished_run(served_run):
+    foxglove, viewer = f"ws://127.0.0.1:{served_run.ports['foxglove']}", f"http://127.0.0.1:{served_run.ports['viewer']}/"
+    assert f"viewer: {viewer}\n" in served_run.stderr and f"foxglove: {foxglove}\n" in served_run.stderr
+    assert served_run.stdout[-1] == f"the run has finished; serving it until Ctrl-C: viewer {viewer}, foxglove {foxglove}\n"
+    assert any(line.startswith("results: ") for line in served_run.stdout)
+    assert (served_run.out / "metrics.json").is_file() and (served_run.out / "run.mcap").is_file()
+    time.sleep(1.0)
+    assert served_run.process.poll() is None and port_open(served_run.ports["foxglove"]) and port_open(served_run.ports["viewer"])
+
+
+def test_npm_foxglove_client_with_the_old_subprotocol_receives_every_channel_of_the_finished_run(served_run):
+    """The npm @foxglove/ws-protocol client offers only foxglove.websocket.v1 (the SDK's own
+    server answers that with HTTP 400); it connects after the last frame and is sent the run."""
+    received = npm_foxglove.receive(f"ws://127.0.0.1:{served_run.ports['foxglove']}")
+    assert received["exit_code"] == 0 and received["errors"] == [], received["errors"]
+    assert received["offered"] == received["subprotocol"] == "foxglove.websocket.v1"
+    assert {(c["topic"], c["schemaName"], c["encoding"], c["schemaEncoding"]) for c in received["channels"]} == {
+        (topic, msgtype, "cdr", "ros2msg") for topic, msgtype in TOPICS.items()}
+    recorded = read_mcap(served_run.out / "run.mcap")
+    # Every channel of the run: each topic the run recorded in run.mcap came over the connection.
+    assert set(received["messages"]) == set(recorded) and len(recorded) >= 10, (sorted(received["messages"]), sorted(recorded))
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    decoded = {topic: [(int(t), store.deserialize_cdr(base64.b64decode(data), TOPICS[topic])) for t, data in messages]
+               for topic, messages in received["messages"].items()}
+    for topic, stem in STAGE_FILES.items():   # the poses: every frame's, equal to the run's TUM files
+        tum = read_tum(served_run.out / f"{stem}.tum")
+        by_stamp = {round(float(s) * 1e9): p for s, p in zip(tum.stamps, tum.positions)}
+        poses = decoded[topic]
+        if topic != "/gridslam/groundtruth":   # the ground truth comes with newest-only camera frames
+            assert len(poses) == FRAMES, topic
+        assert [t for t, _ in poses] == sorted(set(t for t, _ in poses)), topic
+        positions = [[pose.pose.pose.position.x, pose.pose.pose.position.y] for _, pose in poses]
+        expected = [by_stamp[stamp][:2] for stamp, _ in poses]
+        if topic == "/gridslam/egomotion":   # dead-reckoned again by the server: the same sums, rounded apart
+            np.testing.assert_allclose(positions, expected, rtol=0, atol=1e-12)
+        else:
+            np.testing.assert_array_equal(positions, expected)   # the same doubles
+    # The map as the run ended: the experiences of run.mcap's last MarkerArray.
+    last = lambda markers: {m.ns: len(m.points) for m in markers[-1][1].markers}   # noqa: E731
+    assert last(decoded["/gridslam/map/markers"])["experiences"] == last(recorded["/gridslam/map/markers"])["experiences"] >= 5
+
+
+# What the viewer page shows of a run, read from its DOM.
+FINISHED_PAGE = """
+const rows = [...document.querySelectorAll('#health tbody tr')];
+return {
+  activity: document.getElementById('activity').textContent,
+  activity_class: document.getElementById('activity').className,
+  connection: document.getElementById('connection').textContent,
+  frame: document.getElementById('frame').textContent,
+  experiences: document.getElementById('experiences').textContent,
+  grid: Number(document.getElementById('track-grid').dataset.count || 0),
+  map: Number(document.getElementById('track-map').dataset.count || 0),
+  services: Object.fromEntries(rows.map((row) => [row.children[1].textContent, [row.className, row.children[3].textContent]])),
+};
+"""
+
+
+def test_a_browser_opening_the_viewer_after_the_run_shows_it_finished(served_run, tmp_path):
+    chromium, chromedriver = chromium_and_driver()
+    browser = Browser(chromium, chromedriver, tmp_path / "profile")
+    try:
+        browser.open(f"http://127.0.0.1:{served_run.ports['viewer']}/")   # a fresh visit, after the last frame
+        page = wait_for(lambda: (p := browser.script(FINISHED_PAGE)) and p["activity"].startswith("finished") and p,
+                        timeout=15, period=0.2)
+        png = browser.screenshot()
+        (tmp_path / "finished.png").write_bytes(png)
+    finally:
+        browser.close()
+    assert page["activity"] == f"finished · {FRAMES} frames" and page["activity_class"] == "badge done", page
+    assert page["connection"] == "live" and page["frame"] == str(FRAMES - 1), page
+    assert page["grid"] >= FRAMES and page["map"] >= FRAMES and int(page["experiences"]) >= 5, page   # the final state
+    # The pipeline's services stopped when the run ended; the servers still run.
+    stages = ("source", "egomotion", "gridcells", "loopclosure", "expmap")
+    assert {name: page["services"][name] for name in stages} == dict.fromkeys(stages, ["stopped", "stopped"]), page
+    assert page["services"]["viewer"] == ["", "running"] and page["services"]["foxglove"] == ["", "running"], page
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_ctrl_c_ends_the_served_run(served_run):
+    started = time.monotonic()
+    served_run.process.send_signal(signal.SIGINT)
+    code = served_run.process.wait(timeout=20)
+    assert code == 0 and time.monotonic() - started < 10, "".join(served_run.stderr)[-2000:]
+    assert not any(port_open(port) for port in served_run.ports.values()), served_run.ports
 
 
 def test_run_mcap_has_one_odometry_per_frame_and_stage_equal_to_the_tum_files(synthetic_run):

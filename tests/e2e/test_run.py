@@ -5,7 +5,6 @@ import json
 import subprocess
 import sys
 
-import pytest
 
 from services.evaluation.trajectory import read_kitti, read_tum
 from tests.netutil import REPO, endpoint, free_port, start_router, stop
@@ -39,6 +38,21 @@ def test_run_writes_every_stage_and_its_evaluation(tmp_path):
     assert gridcells["latency_ms"]["p50"] > 0
     assert all(service["decode_errors"] == 0 and service["gaps"] == 0 for service in metrics["services"].values())
     assert json.loads((out / "config.json").read_text())["egomotion"] == "passthrough"
+
+
+def test_frames_skipped_by_a_stride_are_no_gaps(tmp_path):
+    """`--stride 3` (here in its old spelling `--step 3`, still read, with a note): seq goes up by
+    3 from frame to frame, and no service counts the frames in between as missing."""
+    out = tmp_path / "results"
+    done = run(["run", "--source", "synthetic:0", "--preset", "synthetic", "--egomotion", "passthrough", "--step", "3",
+                "--n-frames", "20", "--no-mcap", "--listen", endpoint(free_port()), "--out", str(out)])
+    assert done.returncode == 0, done.stderr
+    assert "--step 3 is now spelled --stride 3" in done.stderr
+    assert [round(stamp * 10) for stamp in read_tum(out / "egomotion.tum").stamps][:3] == [0, 3, 6]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["stages"]["map"]["frames"] == 20
+    assert {name: service["gaps"] for name, service in metrics["services"].items()} == \
+           {name: 0 for name in ("source", "egomotion", "gridcells", "loopclosure", "expmap")}
 
 
 def test_unknown_preset_and_missing_dataset_are_one_line_errors(tmp_path):

@@ -19,8 +19,10 @@ import time
 
 import pytest
 import zenoh
+import zenoh.ext
 
 from services.common import codec, topics
+from services.common import service as service_base
 from services.common.runtime import open_session
 from tests.messages import sample_messages
 from tests.netutil import free_port, port_open, start, stop, wait_for
@@ -199,7 +201,7 @@ def test_sharding_and_the_refusal_pass_access_control(gridcells, certs):
         stop(second)   # still running if it was not refused
     assert second.returncode == 1 and f"gridcells of robot {ROBOT} is already running (instance {instance})" in err, err
 
-    estimators = [start(["service", "egomotion", "--estimator", "passthrough", "--instance", name, *client,
+    estimators = [start(["service", "egomotion", "--estimator", "passthrough", "--instances", "2", "--instance", name, *client,
                          *cfg_flags(certs, "egomotion")]) for name in ("one", "two")]
     sessions = [open_session(client_runtime(port, CLIENT_MTLS, certs, role)) for role in ("source", "operator")]
     try:
@@ -219,3 +221,32 @@ def test_sharding_and_the_refusal_pass_access_control(gridcells, certs):
             session.close()
         results = [stop(process) for process in estimators]
     assert all(code == 0 for code, _, _ in results), results
+
+
+def test_the_publishers_cache_is_asked_through_access_control_by_the_topics_readers_only(acl_router, certs):
+    """A pipeline publisher keeps its last samples in a cache that a subscriber which missed some
+    asks (Zenoh's advanced publisher and subscriber, docs/reliability.md), under keys of their
+    own (<topic>/@adv/...). A gridcells client that subscribes after egomotion published frames
+    0-4 gets them from the cache; an observer, which may not read egomotion, gets none."""
+    robot = "recovery"   # (the gridcells service of the other tests serves robot0)
+    sessions = {role: open_session(client_runtime(acl_router, CLIENT_MTLS, certs, role))
+                for role in ("egomotion", "gridcells", "observer")}
+    got: dict[str, list[int]] = {"gridcells": [], "observer": []}
+    subscribers = []
+    try:
+        publisher = service_base.declare_publisher(sessions["egomotion"], robot, "egomotion")
+        for seq in range(5):
+            publisher.put(codec.encode(next(m for m in sample_messages(seq) if m.KIND == "EgoMotion")))
+        time.sleep(0.3)   # (the cache's queryable has reached the router)
+        for role, seqs in got.items():
+            subscribers.append(zenoh.ext.declare_advanced_subscriber(
+                sessions[role], topics.key(robot, "egomotion"),
+                lambda sample, seqs=seqs: seqs.append(codec.decode(sample.payload.to_bytes(),
+                                                                   encoding=str(sample.encoding)).header.seq),
+                history=zenoh.ext.HistoryConfig()))
+        wait_for(lambda: len(got["gridcells"]) == 5, timeout=10)
+        time.sleep(0.5)   # (time for the observer to get what it should not)
+        assert got == {"gridcells": [0, 1, 2, 3, 4], "observer": []}
+    finally:
+        for session in sessions.values():
+            session.close()

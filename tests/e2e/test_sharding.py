@@ -1,7 +1,8 @@
-"""Sharded ego-motion (issue 15), as real processes over a real router: `gridslam run
---egomotion-instances 2` gives the trajectories of one instance, frame for frame; an instance
-killed mid-run and one added mid-run lose no frame and double none; a second instance of a
-stage that keeps state (gridcells, loopclosure, expmap) refuses to start."""
+"""Sharded ego-motion (docs/pipeline.md), as real processes over a real router: one egomotion
+instance publishes the increments of the estimator run frame after frame (`gridslam odometry`);
+`gridslam run --egomotion-instances 3` gives the trajectories of two, frame for frame; an
+instance killed mid-run and one added mid-run lose no frame and double none; a second instance
+of a stage that keeps state (gridcells, loopclosure, expmap) refuses to start."""
 
 import json
 import os
@@ -10,6 +11,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from services.common.health import live_services, statuses
@@ -21,16 +23,25 @@ START, FRAMES = 90, 115
 TRAJECTORIES = ("egomotion.tum", "gridcells.tum", "map.tum")
 
 
-def run_args(shared_data: Path, out: Path, port: int, instances: int) -> list[str]:
+def run_args(shared_data: Path, out: Path, port: int, instances: int, *extra: str) -> list[str]:
     return GRIDSLAM + ["run", "--source", f"stereo:{shared_data / 'nubot_scene1'}", "--preset", "nubot", "--egomotion",
                        "stereo", "--start", str(START), "--n-frames", str(FRAMES), "--no-mcap",
-                       "--egomotion-instances", str(instances), "--listen", endpoint(port), "--out", str(out)]
+                       "--egomotion-instances", str(instances), "--listen", endpoint(port), "--out", str(out), *extra]
+
+
+def odometry(shared_data: Path, out: Path, *extra: str) -> np.ndarray:
+    """`gridslam odometry` on the run's frames: its egomotion.tum (stamp, x, y, z, quaternion)."""
+    done = subprocess.run(GRIDSLAM + ["odometry", "--source", f"stereo:{shared_data / 'nubot_scene1'}", "--preset", "nubot",
+                                      "--estimator", "stereo", "--start", str(START), "--n-frames", str(FRAMES),
+                                      "--out", str(out), *extra], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    return np.loadtxt(out / "egomotion.tum")
 
 
 @pytest.fixture(scope="module")
-def one_instance(shared_data, tmp_path_factory):
-    out = tmp_path_factory.mktemp("one")
-    done = subprocess.run(run_args(shared_data, out, free_port(), 1), cwd=REPO, capture_output=True, text=True, timeout=300)
+def two_instances(shared_data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("two")
+    done = subprocess.run(run_args(shared_data, out, free_port(), 2), cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     return out
 
@@ -46,14 +57,32 @@ def assert_same_run(out: Path, reference: Path) -> dict:
     return metrics
 
 
-def test_two_instances_give_the_trajectories_of_one(shared_data, one_instance, tmp_path):
-    done = subprocess.run(run_args(shared_data, tmp_path, free_port(), 2), cwd=REPO, capture_output=True, text=True,
+def test_one_instance_publishes_the_estimator_run_frame_after_frame(shared_data, two_instances, tmp_path):
+    """The default run measures what `gridslam odometry` measures; several instances publish the
+    increments of `gridslam odometry --shard-block 4`, which differ at block starts."""
+    done = subprocess.run(run_args(shared_data, tmp_path / "run", free_port(), 1, "--no-mapping"), cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    alone = np.loadtxt(tmp_path / "run" / "egomotion.tum")
+    frame_after_frame = odometry(shared_data, tmp_path / "odometry")
+    assert alone.shape == frame_after_frame.shape == (FRAMES, 8)
+    assert np.abs(alone[:, 1:4] - frame_after_frame[:, 1:4]).max() < 1e-9
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["services"]["egomotion"]["extra"]["estimated_again"] == 0   # no block rebuilt from its primers
+    sharded = np.loadtxt(two_instances / "egomotion.tum")
+    in_blocks = odometry(shared_data, tmp_path / "blocks", "--shard-block", "4")
+    assert np.abs(sharded[:, 1:4] - in_blocks[:, 1:4]).max() < 1e-9
+    assert np.abs(sharded[:, 1:4] - alone[:, 1:4]).max() > 1e-3
+
+
+def test_three_instances_give_the_trajectories_of_two(shared_data, two_instances, tmp_path):
+    done = subprocess.run(run_args(shared_data, tmp_path, free_port(), 3), cwd=REPO, capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr
-    metrics = assert_same_run(tmp_path, one_instance)
-    estimated = {name: metrics["services"][name]["extra"]["estimated"] for name in ("egomotion", "egomotion-2")}
-    assert all(count >= FRAMES / 4 for count in estimated.values()), estimated   # both took a share
-    assert sum(estimated.values()) <= FRAMES + 8, estimated   # a block or two twice at most, while they meet
+    metrics = assert_same_run(tmp_path, two_instances)
+    estimated = {name: metrics["services"][name]["extra"]["estimated"] for name in ("egomotion", "egomotion-2", "egomotion-3")}
+    assert all(count >= FRAMES / 6 for count in estimated.values()), estimated   # each took a share
+    assert sum(estimated.values()) <= FRAMES + 12, estimated   # a block or two twice at most, while they meet
 
 
 def estimated_by(session, instance: str) -> float:
@@ -64,7 +93,7 @@ def estimated_by(session, instance: str) -> float:
     return 0
 
 
-def test_an_instance_added_and_one_killed_mid_run(shared_data, one_instance, tmp_path):
+def test_an_instance_added_and_one_killed_mid_run(shared_data, two_instances, tmp_path):
     port = free_port()
     run = subprocess.Popen(run_args(shared_data, tmp_path, port, 2), cwd=REPO, stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
@@ -77,8 +106,9 @@ def test_an_instance_added_and_one_killed_mid_run(shared_data, one_instance, tmp
         # still going when it has joined, however busy the machine.
         os.kill(source, signal.SIGSTOP)
         try:
-            added = start(["service", "egomotion", "-e", endpoint(port), "--instance", "added", "--preset", "nubot",
-                           "--estimator", "stereo"])
+            # Told that instances share the frames (any number above one runs the same blocks).
+            added = start(["service", "egomotion", "-e", endpoint(port), "--instance", "added", "--instances", "3",
+                           "--preset", "nubot", "--estimator", "stereo"])
             session = client_session(port)
             wait_for(lambda: ("robot0", "egomotion", "added") in live_services(session, timeout=0.5), timeout=60)
         finally:
@@ -98,7 +128,7 @@ def test_an_instance_added_and_one_killed_mid_run(shared_data, one_instance, tmp
     assert run.returncode == 0, err
     assert added_result is not None and added_result[0] == 0, added_result
     assert killed_at < FRAMES - 10, "killed too late to matter"
-    metrics = assert_same_run(tmp_path, one_instance)
+    metrics = assert_same_run(tmp_path, two_instances)
     assert metrics["services"]["egomotion-2"]["restarts"] == 1
     assert metrics["services"]["added"]["extra"]["estimated"] > 0
 

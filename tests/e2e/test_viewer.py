@@ -13,18 +13,14 @@ Set GRIDSLAM_UPDATE_SCREENSHOT=1 to write the screenshot to docs/img/viewer.png.
 
 from __future__ import annotations
 
-import base64
 import json
 import math
 import os
-import shutil
 import signal
 import subprocess
 import threading
 import time
-import urllib.error
 import urllib.request
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,7 +33,8 @@ from schemas import (
 from services.common import codec, topics
 from services.common.convert import image_to_msg, matrix_to_pose, planar_pose
 from services.source.synthetic import SyntheticWorld, WorldConfig
-from services.viewer.state import planar_from_camera
+from services.common.geometry import planar_from_camera
+from tests.browser import Browser, chromium_and_driver
 from tests.netutil import REPO, client_session, endpoint, free_port, port_open, start, start_router, stop, wait_for
 
 pytestmark = pytest.mark.e2e
@@ -258,65 +255,6 @@ def test_viewer_process_streams_a_run_and_stops_on_sigterm(world):
 
 
 # ---------------------------------------------------------------------- a real browser
-def chromium_and_driver() -> tuple[str, str]:
-    """Paths of chromium and chromedriver; installs the Debian packages when root, else skips."""
-    found = shutil.which("chromium"), shutil.which("chromedriver")
-    if all(found):
-        return found
-    if os.geteuid() != 0 or not shutil.which("apt-get"):
-        pytest.skip("headless Chromium is absent (Debian packages chromium and chromium-driver) and cannot be "
-                    "installed here (needs root and apt-get)")
-    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    for command in (["apt-get", "update"], ["apt-get", "install", "-y", "--no-install-recommends", "chromium", "chromium-driver"]):
-        result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=900)
-        if result.returncode != 0:
-            pytest.skip(f"could not install Chromium: {' '.join(command)} failed: {result.stderr.strip().splitlines()[-1:]}")
-    found = shutil.which("chromium"), shutil.which("chromedriver")
-    if not all(found):
-        pytest.skip("apt-get installed chromium and chromium-driver, but the programs are not on PATH")
-    return found
-
-
-class Browser:
-    """Headless Chromium through chromedriver's W3C WebDriver HTTP API."""
-
-    def __init__(self, chromium: str, chromedriver: str, profile: Path):
-        port = free_port()
-        self.driver = subprocess.Popen([chromedriver, f"--port={port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        self.base = f"http://127.0.0.1:{port}"
-        wait_for(lambda: port_open(port), timeout=15)
-        args = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                "--disable-dev-shm-usage", "--hide-scrollbars", "--window-size=1400,900", f"--user-data-dir={profile}"]
-        capabilities = {"alwaysMatch": {"browserName": "chrome", "goog:chromeOptions": {"binary": chromium, "args": args}}}
-        self.session = self.call("POST", "/session", {"capabilities": capabilities})["sessionId"]
-
-    def call(self, method: str, path: str, body: dict | None = None):
-        data = None if body is None else json.dumps(body).encode()
-        request = urllib.request.Request(self.base + path, data=data, method=method,
-                                         headers={"Content-Type": "application/json"})
-        try:
-            with urllib.request.urlopen(request, timeout=60) as response:
-                return json.loads(response.read())["value"]
-        except urllib.error.HTTPError as error:
-            raise AssertionError(f"webdriver {method} {path}: {error.read().decode()[:500]}") from None
-
-    def open(self, url: str) -> None:
-        self.call("POST", f"/session/{self.session}/url", {"url": url})
-
-    def script(self, source: str):
-        return self.call("POST", f"/session/{self.session}/execute/sync", {"script": source, "args": []})
-
-    def screenshot(self) -> bytes:
-        return base64.b64decode(self.call("GET", f"/session/{self.session}/screenshot"))
-
-    def close(self) -> None:
-        try:
-            self.call("DELETE", f"/session/{self.session}")
-        finally:
-            stop(self.driver)
-
-
 # What the page shows, read from its DOM: counters, drawn points per path, images, health rows.
 PAGE = """
 const count = (id) => Number(document.getElementById(id).dataset.count || 0);
@@ -383,8 +321,8 @@ def test_browser_shows_the_run(world, tmp_path):
         # The services table fits the 1400-pixel window: no horizontal scroll bar.
         assert wide_page["aside_width"][0] <= wide_page["aside_width"][1], wide_page
         assert wide_page["page_width"][0] <= wide_page["page_width"][1], wide_page
-        # The run is over and the viewer stops (as `gridslam run --view` stops it): the page keeps
-        # its last images, even when a newer revision is asked for after the viewer has gone.
+        # The viewer stops (as `gridslam run --view` stops it on Ctrl-C): the page keeps its last
+        # images, even when a newer revision is asked for after the viewer has gone.
         stop(pipeline.viewer)
         browser.script("loadImage(document.getElementById('camera'), 'camera.jpg?r=999999');"
                        "loadImage(document.getElementById('lattice'), 'lattice.png?r=999999');")

@@ -1,9 +1,12 @@
 """The service base on real in-process sessions: a message the core rejects is counted and the
 service keeps running; gaps and stale seq numbers are counted; a re-sent frame gets the outputs
 published for it the first time; messages published out of order by several instances are
-handled in the order their `previous_seq` links give; a stop ends the loop and closes the session."""
+handled in the order their `previous_seq` links give; a stop ends the loop and closes the session;
+frames published while the router was away are recovered by Zenoh's advanced publisher and
+subscriber and handled in order."""
 
 import threading
+import time
 
 import pytest
 import zenoh
@@ -129,3 +132,47 @@ def test_rejections_gaps_stale_and_replay():
         client.close()
         router.close()
     assert not thread.is_alive() and service.session is None
+
+
+@pytest.mark.parametrize("recovered, after", [(True, 10), (True, 0), (False, 10)])
+def test_frames_published_while_the_router_was_away_are_recovered_in_order(monkeypatch, recovered, after):
+    """The router dies after frame 49 of egomotion and comes back on its port 1 s later; frames
+    50-99 are published while it is away, then `after` more. The pipeline's publisher (numbered,
+    cached) and the service's subscriber recover them, and the service handles every frame once,
+    in order; with none after them, the subscriber's periodic query finds them. With plain
+    publishers and subscribers (recovers() false) those frames are lost: what the test sees is
+    the recovery's doing."""
+    if not recovered:
+        monkeypatch.setattr(service_base, "recovers", lambda topic: False)
+    port = free_port()
+    router = router_session(port)
+    service = Doubler(RuntimeConfig(connect=[endpoint(port)]))
+    thread = threading.Thread(target=service.run)
+    thread.start()
+    client = client_session(port)
+    try:
+        wait_for(lambda: any(r.ok for r in client.liveliness().get(topics.health_key("robot0", "doubler", "test"), timeout=1)))
+        publisher = service_base.declare_publisher(client, "robot0", "egomotion")
+        time.sleep(0.5)   # (the subscriber has met the publisher)
+        for seq in range(50):
+            publisher.put(egomotion(seq, 1.0))
+        wait_for(lambda: len(service.handled) == 50)
+        router.close()
+        for seq in range(50, 100):
+            publisher.put(egomotion(seq, 1.0))
+        time.sleep(1.0)
+        router = router_session(port)
+        wait_for(lambda: service.state == "running" and not service._link.down, timeout=10)
+        time.sleep(0.5)   # (the client has its link back too)
+        for seq in range(100, 100 + after):   # (within the cache's CACHE_SAMPLES of the ones lost)
+            publisher.put(egomotion(seq, 1.0))
+        wait_for(lambda: service.handled and service.handled[-1] == 99 + after, timeout=10)
+    finally:
+        service.stop()
+        thread.join(timeout=5)
+        client.close()
+        router.close()
+    if recovered:
+        assert service.handled == list(range(100 + after)) and service.counters.gaps == 0
+    else:
+        assert service.handled == sorted(set(service.handled)) and service.counters.gaps >= 40

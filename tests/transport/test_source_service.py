@@ -17,7 +17,7 @@ from schemas import CameraFrame, MapPose, ServiceStatus
 from services.common import codec, topics
 from services.common.convert import image_from_msg, planar_pose, pose_to_matrix
 from services.common.runtime import RuntimeConfig
-from services.source.frames import planar_motion
+from services.common.geometry import planar_motion
 from services.source.service import SourceConfig, SourceService
 from services.source.spec import open_source
 from tests.messages import header

@@ -11,9 +11,10 @@ import math
 import numpy as np
 import pytest
 
-from services.source import campus
+from services.source.world import campus
 from services.source.spec import load_preset
-from services.source.synthetic import SyntheticWorld, WorldConfig, revisits
+from services.source.synthetic import SyntheticWorld, WorldConfig
+from services.source.world.revisits import revisits
 
 
 def campus_config(**changes) -> WorldConfig:
@@ -83,7 +84,7 @@ def test_revisits_in_both_directions_and_lookalikes(world, found):
     # The same place: within half a frame's travel and the sway.
     assert all(r.distance < world.speed / 2 + 2 * world.config.wander + 0.05 for r in real)
     for r in real:  # the matched frames really stand at the same place, more than 30 m of route apart
-        (a, b), (c, d) = r.frames, r.earlier
+        (a, _), (c, _) = r.frames, r.earlier
         assert np.hypot(*(world.poses[a, :2] - world.poses[c, :2])) < 1.0
         assert world.distance(a) - world.distance(c) > 30
     lookalikes = [r for r in found if r.lookalike]

@@ -77,3 +77,35 @@ def test_router_defaults_and_bad_values():
         runtime_from_args(parse(["--cfg", "novalue"]))
     with pytest.raises(ConfigError, match="invalid Zenoh configuration"):
         zenoh_config(RuntimeConfig(cfg={"transport/link/tx/lease": "not-a-number"}))
+
+
+def test_the_runs_ros2_graph_settings_are_graphparams_declared_once(tmp_path):
+    """`gridslam run` passes --ros-domain-id, --ros-namespace, --ros-distro and --ros2-keys on to
+    the ros2 service and a ros2: source; RunConfig derives them from GraphParams, None meaning
+    the service's own default, and the bounds and choices are GraphParams'."""
+    import dataclasses
+
+    from services.pipeline.runner import RunConfig, graph_args
+    from services.ros.rmw_zenoh import DISTROS, KEY_STYLES, GraphParams
+
+    names = [f.name for f in dataclasses.fields(GraphParams)]
+    for f in dataclasses.fields(GraphParams):   # derived: GraphParams' help, its default named
+        assert RunConfig.model_fields[f.name].description == f"{f.metadata['help']} (default: the service's, {f.default})"
+    run = RunConfig(source="synthetic:0")
+    assert [getattr(run, name) for name in names] == [None] * len(names)
+    assert graph_args(run) == []   # nothing given: the services keep their defaults
+    given = RunConfig(source="synthetic:0", ros_domain_id=7, ros_namespace="/bot", ros_distro="humble", ros2_keys="bridge")
+    assert graph_args(given) == ["--ros-domain-id", "7", "--ros-namespace", "/bot", "--ros-distro", "humble",
+                                 "--ros2-keys", "bridge"]
+    for bad in ({"ros_domain_id": 233}, {"ros_distro": "foxy"}, {"ros2_keys": "dds"}):
+        with pytest.raises(ValueError):
+            RunConfig(source="synthetic:0", **bad)
+    for distro in DISTROS:
+        assert RunConfig(source="synthetic:0", ros_distro=distro).ros_distro == distro
+    for keys in KEY_STYLES:
+        assert RunConfig(source="synthetic:0", ros2_keys=keys).ros2_keys == keys
+    # A [run] table of a config file fills them like any other run setting.
+    path = tmp_path / "gridslam.toml"
+    path.write_text('[run]\nsource = "synthetic:0"\nros_domain_id = 5\nros_distro = "kilted"\n')
+    loaded = load_config(RunConfig, "run", config_file=path)
+    assert (loaded.ros_domain_id, loaded.ros_distro, loaded.ros_namespace) == (5, "kilted", None)

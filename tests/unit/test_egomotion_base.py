@@ -19,7 +19,7 @@ from services.egomotion.base import (
     transform_from_increment,
     transform_from_rt,
 )
-from services.egomotion.scene import pinhole
+from services.benchmarks.box_room import pinhole
 from services.evaluation.trajectory import Trajectory, camera_to_planar, planar_increments
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from services.egomotion import make_estimator
 from services.source.frames import Frame
-from services.egomotion.scene import pinhole, sequence
+from services.benchmarks.box_room import pinhole, sequence
 
 CAMERA = pinhole(320, 240, fov_deg=70.0)
 GROUND = {"scale_source": "ground", "camera_height_m": 1.2, "ground_margin_px": 20.0, "bucket_size_px": 32}

@@ -9,7 +9,7 @@ import pytest
 
 from services.egomotion import make_estimator
 from services.egomotion.offline import load_reference, odometry, summary_rows
-from services.egomotion.scene import pinhole, sequence
+from services.benchmarks.box_room import pinhole, sequence
 from services.evaluation.trajectory import read_tum
 
 CAMERA = pinhole(320, 240, fov_deg=70.0, baseline=0.12)

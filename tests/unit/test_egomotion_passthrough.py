@@ -7,7 +7,7 @@ import pytest
 
 from services.egomotion import EgomotionError, make_estimator
 from services.source.frames import Frame
-from services.egomotion.scene import motion_pose
+from services.benchmarks.box_room import motion_pose
 
 STEPS = [(0.2, 0.01, math.radians(4.0)), (0.3, -0.02, math.radians(-2.0)), (0.1, 0.0, 0.0)]
 

@@ -1,12 +1,15 @@
-"""Sharded ego-motion's core (services/egomotion/shards.py): which instance takes which frame, and
-blocks that give the same increments whichever instance runs them, on real NuBot stereo pairs."""
+"""Sharded ego-motion's core (services/egomotion/shards.py): one instance runs the estimator frame
+after frame, several in blocks; which instance takes which frame, and blocks that give the same
+increments whichever instance runs them, on real NuBot stereo pairs."""
 
 import math
 
 import pytest
 
 from services.egomotion import EgomotionError, load_estimator_config, make_estimator
-from services.egomotion.shards import BlockEstimation, BlockEstimator, FrameHistory, block_owner
+from services.egomotion import ESTIMATORS
+from services.egomotion.shards import (BLOCK, BlockEstimation, BlockEstimator, FrameByFrame, FrameHistory, ShardParams,
+                                       block_owner, block_size)
 from services.source.spec import open_source
 
 # Frames 140–171 hold NuBot's hard spot: frame 152 repeats 151's left image with a new right one
@@ -136,3 +139,27 @@ def test_history_is_complete_from_its_oldest_frame():
 def test_block_size_must_be_positive(params):
     with pytest.raises(ValueError, match="block"):
         blocks("stereo", params, 0)
+
+
+def test_one_instance_runs_frame_after_frame_and_several_in_blocks():
+    stereo, mono = ESTIMATORS["stereo"][0], ESTIMATORS["mono"][0]
+    assert block_size(stereo, ShardParams()) is None and block_size(mono, ShardParams(shard_block=8)) is None
+    assert block_size(stereo, ShardParams(instances=2)) == BLOCK == 4
+    assert block_size(mono, ShardParams(instances=2)) == 16
+    assert block_size(mono, ShardParams(instances=3, shard_block=8)) == 8
+
+
+def test_frame_after_frame_is_the_estimator_fed_every_frame(frames, params):
+    """What one egomotion instance publishes is what `gridslam odometry` computes (the same
+    estimator, fed every frame); in blocks the stereo increments differ at block starts."""
+    plain = make_estimator("stereo", frames[0].camera, params["stereo"])
+    expected = [(frame.seq, plain.estimate(frame)) for frame in frames]
+    alone = FrameByFrame(lambda frame: make_estimator("stereo", frame.camera, params["stereo"]))
+    got = [alone.estimate(frame.seq, frame) for frame in frames]
+    assert [e.previous_seq for e in got] == [None] + [frame.seq for frame in frames[:-1]]
+    assert [as_tuple(e)[1:] for e in got] == [(i.forward, i.left, i.yaw, i.quality, i.inliers) for _, i in expected]
+    assert alone.last_fed == frames[-1].seq
+    with pytest.raises(ValueError, match="not after"):
+        alone.estimate(frames[3].seq, frames[3])
+    in_blocks, history = blocks("stereo", params, 4), history_of(frames)
+    assert [as_tuple(in_blocks.estimate(frame.seq, history)) for frame in frames] != [as_tuple(e) for e in got]

@@ -23,7 +23,8 @@ from services.common.runtime import RuntimeConfig
 from services.evaluation import metrics
 from services.evaluation.trajectory import Trajectory, read_tum
 from services.expmap.export import MapExportError, export_map, graph_dict, read_log
-from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, Link, MapParams, between, compose, wrap
+from services.common.geometry import between, compose, wrap
+from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, Link, MapParams
 from services.expmap.service import ExpMapConfig, ExpMapService
 from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, replay, write_checkpoint
 
@@ -252,13 +253,16 @@ def test_the_odometry_covariance_decides_what_drift_a_closure_may_correct():
 # --- the pose graph's junctions and chains (optimizer = gtsam) ---------------------------------
 def least_squares(experience_map: ExperienceMap, initial: np.ndarray, without: int | None = None):
     """The map's whole pose graph, every experience a variable and every link it keeps a factor
-    (closures under its kernel), solved in one batch from `initial`: its poses and the graph.
+    (closures under its kernel), each part's first experience held by its prior, solved in one
+    batch from `initial`: its poses and the graph.
     `without`: leave that link out."""
     import gtsam
 
     state = experience_map.state()
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*state["prior"]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    for key, x, y, heading, sigma in state["part_priors"]:   # the later parts' first experiences
+        graph.add(gtsam.PriorFactorPose2(int(key), gtsam.Pose2(x, y, heading), gtsam.noiseModel.Isotropic.Sigma(3, sigma)))
     kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(experience_map.params.kernel_width)
     for index, (link, covariance) in enumerate(zip(experience_map.links, state["covariances"])):
         if link.accepted and index != without:
@@ -299,13 +303,22 @@ def test_the_map_is_the_least_squares_solution_of_its_whole_graph(closure, toler
 def test_a_closure_is_tested_by_the_innovation_of_the_whole_graph():
     # νᵀS⁻¹ν with S = Σ + J P Jᵀ, P the whole graph's marginal covariance of the closure's two
     # experiences: the factor of a chain carries the covariance of its links along it.
-    import gtsam
-
-    from services.expmap.graph import adjoint, inverse
-
     frames = drive_square(heading_drift=0.01)
     experience_map = run_map(frames)
-    (index, link), = [(i, k) for i, k in enumerate(experience_map.links) if k.loop_closure]
+    (index, _), = [(i, k) for i, k in enumerate(experience_map.links) if k.loop_closure]
+    expected = whole_graph_innovation(experience_map, index)
+    assert expected > 1.0   # the loop's drift: a closure the odometry's uncertainty must absorb
+    assert experience_map.residuals[-1] == pytest.approx(expected, rel=0.02)
+
+
+def whole_graph_innovation(experience_map: ExperienceMap, index: int) -> float:
+    """The test statistic of the map's link `index` (a closure) computed from the whole graph
+    without it: √(νᵀS⁻¹ν), S = Σ + J P Jᵀ."""
+    import gtsam
+
+    from services.common.geometry import adjoint, inverse
+
+    link = experience_map.links[index]
     covariance = experience_map.state()["covariances"][index]
     poses, graph, solution = least_squares(experience_map, experience_map.final_poses(), without=index)
     source, target = (gtsam.Pose2(*poses[key]) for key in (link.source, link.target))
@@ -313,9 +326,7 @@ def test_a_closure_is_tested_by_the_innovation_of_the_whole_graph():
     marginal = gtsam.Marginals(graph, solution).jointMarginalCovariance([link.source, link.target]).fullMatrix()
     relative = between(tuple(poses[link.source]), tuple(poses[link.target]))
     jacobian = np.hstack([-adjoint(inverse(relative)), np.eye(3)])
-    expected = math.sqrt(innovation @ np.linalg.solve(covariance + jacobian @ marginal @ jacobian.T, innovation))
-    assert expected > 1.0   # the loop's drift: a closure the odometry's uncertainty must absorb
-    assert experience_map.residuals[-1] == pytest.approx(expected, rel=0.02)
+    return math.sqrt(innovation @ np.linalg.solve(covariance + jacobian @ marginal @ jacobian.T, innovation))
 
 
 def test_only_the_junctions_are_in_the_solver_and_frames_between_closures_do_not_touch_it():

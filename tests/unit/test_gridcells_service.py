@@ -58,8 +58,9 @@ def test_the_sideways_noise_added_to_the_covariance_is_the_decoders_unless_set(d
 
 
 def test_run_flags_reach_the_gridcells_service(tmp_path):
-    """`gridslam run --decoder calibrated --step lattice --modules 3 --heading ring`: every
-    option reaches the gridcells service's command line; `--step 2` is still the frame stride."""
+    """`gridslam run --decoder calibrated --step-source lattice --modules 3 --heading ring`: every
+    option reaches the gridcells service's command line; the old spellings `--step lattice` and
+    `--step 2` (the frame stride) still work."""
     import argparse
 
     from services.cli.run import add_run_arguments, run_flags
@@ -73,7 +74,7 @@ def test_run_flags_reach_the_gridcells_service(tmp_path):
     config = RunConfig(**flags)
     assert config.step == 2 and config.step_source == "lattice"
     command = service_args(config, "gridcells", tmp_path)
-    for option in (["--decoder", "calibrated"], ["--step", "lattice"], ["--modules", "3"], ["--heading", "ring"]):
+    for option in (["--decoder", "calibrated"], ["--step-source", "lattice"], ["--modules", "3"], ["--heading", "ring"]):
         index = command.index(option[0])
         assert command[index:index + 2] == option
     with pytest.raises(SystemExit):

@@ -10,7 +10,7 @@ import pytest
 
 from services.common.errors import DataError
 from services.evaluation.trajectory import Trajectory, planar_to_camera, write_kitti, write_tum
-from services.gridcells.motion_io import MotionInputError, add_noise, infer_format, load_motion
+from services.evaluation.motion_io import MotionInputError, add_noise, infer_format, load_motion
 
 
 def _world_path(motion) -> np.ndarray:

@@ -14,7 +14,7 @@ from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule
 from services.loopclosure.detector import MemoryKeyframes
 from services.loopclosure.sequence import SequenceParams, Sequences
 from services.loopclosure.service import LoopClosureConfig
-from services.loopclosure.vocabulary import Vocabulary, VocabularyError, default_vocabulary, hamming, train
+from services.loopclosure.vocabulary import Vocabulary, VocabularyError, default_vocabulary, train
 
 
 def random_descriptors(rng, count: int) -> np.ndarray:
@@ -89,6 +89,20 @@ def test_the_inverted_index_scores_equal_the_l1_score_computed_directly():
     expected = 1 - 0.5 * np.abs(dense - q).sum(axis=1)
     assert np.allclose(index.scores(query, len(bags)), expected, atol=1e-5)
     assert int(np.argmax(index.scores(query, len(bags)))) == 17
+
+
+def test_a_posting_budget_reads_the_rarest_words_and_leaves_out_the_commonest():
+    index = InvertedIndex(10)
+    common, rare = 3, 7
+    for place in range(100):   # every place holds the common word; place 42 alone the rare one
+        words = [common, rare] if place == 42 else [common]
+        index.add(place, BagVector(np.array(words), np.full(len(words), 1 / len(words), np.float32)))
+    query = BagVector(np.array([common, rare]), np.array([0.5, 0.5], np.float32))
+    full = index.scores(query, 100)
+    assert np.allclose(full, index.scores(query, 100, max_postings=101))   # within the budget: every posting
+    budgeted = index.scores(query, 100, max_postings=50)   # the common word's 100 postings do not fit
+    assert budgeted[42] == pytest.approx(0.5) and np.count_nonzero(budgeted) == 1
+    assert full[42] == pytest.approx(1.0) and np.count_nonzero(full) == 100
 
 
 def test_a_frame_votes_for_the_old_place_it_verifies_and_is_at_the_recent_one():

@@ -149,3 +149,37 @@ def test_sharded_runs_keep_a_fixed_window_of_whole_blocks():
     sharded = source_args(RunConfig(source="synthetic:0", egomotion="stereo", egomotion_instances=2), 0, "map/pose")
     assert "--no-adaptive-window" not in alone and alone[alone.index("--window") + 1] == "8"
     assert "--no-adaptive-window" in sharded and int(sharded[sharded.index("--window") + 1]) >= 3 * 4
+
+
+def test_the_run_and_its_egomotion_instances_resolve_one_block_size(tmp_path, monkeypatch):
+    """The frames the runner keeps in flight follow the block size its egomotion children will
+    use: the preset's estimator (kitti's is mono: 16), the config file, the environment; one
+    instance runs frame after frame (no blocks, the plain window)."""
+    from services.egomotion import resolve_sharding
+    from services.egomotion.service import estimator_settings
+    from services.pipeline.runner import service_args, shard_block
+
+    def window(config):
+        args = source_args(config, 0, "map/pose")
+        return int(args[args.index("--window") + 1])
+
+    def child_block(config):   # what the egomotion child resolves from the arguments it is given
+        args = service_parser("egomotion")[0].parse_args(service_args(config, "egomotion", tmp_path)[2:])
+        name, _ = estimator_settings(args)   # kitti's preset names mono
+        return resolve_sharding(name, args.instances, args.shard_block, args.config)[1]
+
+    monkeypatch.delenv("GRIDSLAM_EGOMOTION_SHARD_BLOCK", raising=False)
+    kitti = RunConfig(source="synthetic:0", preset="kitti", egomotion_instances=2)
+    assert shard_block(kitti) == child_block(kitti) == 16 and window(kitti) == 3 * 16
+    alone = RunConfig(source="synthetic:0", preset="kitti")
+    assert shard_block(alone) is None and child_block(alone) is None and window(alone) == 8
+    config_file = tmp_path / "gridslam.toml"
+    config_file.write_text("[egomotion]\nshard_block = 6\n")
+    filed = kitti.model_copy(update={"config_file": config_file})
+    assert shard_block(filed) == child_block(filed) == 6 and window(filed) == 3 * 6
+    monkeypatch.setenv("GRIDSLAM_EGOMOTION_SHARD_BLOCK", "5")
+    assert shard_block(filed) == child_block(filed) == 5 and window(filed) == 3 * 5
+    assert window(alone) == 8
+    # A deployment's GRIDSLAM_EGOMOTION_INSTANCES does not reach a run's children: the runner says how many.
+    monkeypatch.setenv("GRIDSLAM_EGOMOTION_INSTANCES", "3")
+    assert child_block(alone) is None

@@ -17,7 +17,8 @@ from mcap_ros2.decoder import DecoderFactory   # noqa: E402
 
 from services.evaluation.trajectory import Trajectory   # noqa: E402
 from services.ros.mcap_export import MARKER_PERIOD_S, RunContent, write_run_mcap   # noqa: E402
-from services.ros.messages import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC, STAGES, TOPICS, MapState   # noqa: E402
+from services.common.observe import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC   # noqa: E402
+from services.ros.messages import STAGES, TOPICS, MapState   # noqa: E402
 
 FRAMES = 30
 FPS = 10.0
@@ -185,7 +186,22 @@ def test_the_foxglove_server_says_in_one_line_that_its_port_is_taken():
             FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=port))
     service = FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=0))   # any free port
     try:
-        assert service.url.startswith("ws://127.0.0.1:") and service.server.port > 0
-        assert set(service.channels) == set(TOPICS)
+        assert service.url == f"ws://127.0.0.1:{service.relay.port}" and service.relay.port > 0
+        assert set(service.msgdefs) == set(TOPICS.values())   # each client's channels: every topic's type
     finally:
-        service.server.stop()
+        service.close_server()
+
+
+def test_every_channel_offers_its_qos_and_tf_static_is_latched(tmp_path):
+    # The MCAP ros2 profile's offered_qos_profiles, read back as `ros2 bag play` would: without
+    # it /tf_static is replayed volatile and static-transform listeners never get it.
+    path = tmp_path / "run.mcap"
+    write_run_mcap(path, content())
+    with open(path, "rb") as stream:
+        channels = make_reader(stream).get_summary().channels.values()
+    profiles = {channel.topic: channel.metadata.get("offered_qos_profiles", "") for channel in channels}
+    assert profiles and all(profile.startswith("- history: 3\n") for profile in profiles.values()), profiles
+    durability = {topic: [line for line in profile.splitlines() if "durability" in line][0].split(":")[1].strip()
+                  for topic, profile in profiles.items()}
+    assert durability.pop("/tf_static") == "1"                       # TRANSIENT_LOCAL
+    assert set(durability.values()) == {"2"}                          # VOLATILE

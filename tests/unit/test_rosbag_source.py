@@ -15,7 +15,7 @@ pytest.importorskip("rosbags", reason="the optional extra 'ros' (rosbags) is not
 from services.common.errors import GridslamError   # noqa: E402
 from services.source import Camera, SourceError, open_source   # noqa: E402
 from services.source.rosbag import decode_image, interpolate_planar   # noqa: E402
-from tests.bags import FORMATS, LEFT, ODOM, RIGHT, image_topic, write_bag   # noqa: E402
+from tests.bags import FORMATS, LEFT, ODOM, image_topic, write_bag   # noqa: E402
 
 FRAMES = 8
 # JPEG at OpenCV's default quality 95 of the synthetic grey frames: the largest pixel change

@@ -14,12 +14,13 @@ import pytest
 from schemas import CameraFrame, GridPose, MapPose
 from services.common.convert import image_to_msg, planar_pose
 from services.common.errors import ConfigError
+from services.common.geometry import planar_from_camera
 from services.common.runtime import RuntimeConfig
 from services.viewer.config import ViewerConfig
 from services.common.service import Subscription
 from services.viewer.service import INBOX_SIZE, ViewerService
 from services.viewer.state import (
-    Cursor, ViewerParams, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png, planar_from_camera,
+    Cursor, ViewerParams, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png,
 )
 from tests.messages import header, sample_messages
 
@@ -134,6 +135,33 @@ def test_counters_frame_rate_latency_and_totals():
     assert not state.service_rows(now=2.0)[1]["silent"] and rows["gridcells"]["gaps"] == 3
 
 
+def test_a_run_is_finished_when_the_source_says_so_and_its_stopped_services_are_not_dead():
+    state = ViewerState()
+    for seq in range(5):
+        state.on_camera_frame(seq, None, None, now=0.1 * seq)
+        state.on_grid_pose(seq, 0.1 * seq, 0.0, 0.0, (1.0, 0.0), 0.1, False, "grid", now=0.1 * seq)
+    for service in ("source", "gridcells", "egomotion"):
+        state.on_liveliness(service, service, True)
+    state.on_status("source", "source", {**status(), "extra": {"frames_sent": 5}}, now=0.5)
+    assert as_json(state, now=0.6)["counters"]["finished"] is None   # frames sent, not yet all done
+    # The source's last status as it stops: every frame acknowledged; then the runner stops the stages.
+    state.on_status("source", "source", {**status(), "state": "stopping", "extra": {"frames_sent": 5, "finished": 1}},
+                    now=0.7)
+    state.on_status("gridcells", "gridcells", {**status(), "state": "stopping"}, now=0.8)
+    for service in ("source", "gridcells", "egomotion"):
+        state.on_liveliness(service, service, False)
+    view = as_json(state, now=60.0)
+    assert view["counters"]["finished"] == {"frames": 5} and view["counters"]["frame"] == 4
+    rows = {row["service"]: row for row in view["services"]}
+    assert rows["source"]["stopped"] and rows["source"]["state"] == "stopped" and not rows["source"]["silent"]
+    assert rows["gridcells"]["stopped"] and rows["gridcells"]["state"] == "stopped"
+    # Gone without saying it was stopping (its last status said running, or none came): not stopped.
+    assert not rows["egomotion"]["stopped"] and "state" not in rows["egomotion"]
+    # The next run on the robot (seq back at 0) is not finished.
+    state.on_camera_frame(0, None, None, now=61.0)
+    assert as_json(state, now=61.0)["counters"]["finished"] is None
+
+
 def test_latency_falls_back_to_grid_without_a_map():
     state = ViewerState()
     state.on_camera_frame(1, None, None, now=1.0)
@@ -162,6 +190,17 @@ def test_map_is_sent_when_changed_and_snapshots_merge_by_age():
     view = as_json(state, 0.0, cursor)
     assert view["map"]["experiences"][5] == [5, 10.0, 1.0] and [4, 5, 0] in view["map"]["links"]
     assert not state.on_map_update(13, [(6, 1.0, 1.0)], [(5, 6, False)], experience_count=7, link_count=6)
+
+
+def test_the_last_route_asked_of_the_map_is_drawn_with_it():
+    state = ViewerState()
+    cursor = Cursor()
+    state.on_map_update(3, [(0, 0.0, 0.0), (1, 1.0, 0.0)], [(0, 1, False)], experience_count=2, link_count=1)
+    assert as_json(state, 0.0, cursor)["map"]["route"] == []
+    state.on_route([(0.0, 0.0), (1.0, 0.0)])
+    assert as_json(state, 0.0, cursor)["map"]["route"] == [[0.0, 0.0], [1.0, 0.0]]   # sent because it changed
+    state.on_route([(1.0, 0.0)])
+    assert as_json(state, 0.0, cursor)["map"]["route"] == [[1.0, 0.0]]
 
 
 # ---------------------------------------------------------------------- images

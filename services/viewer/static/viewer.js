@@ -11,9 +11,11 @@ const ARROW_GAIN = 4;          // the lattice shift arrow is drawn this many tim
 const tracks = Object.fromEntries(STAGES.map((stage) => [stage, { epoch: null, points: [], pose: null }]));
 const experiences = new Map(); // id → [x, y]
 let links = [];                // [source, target, kind: 0 odometric, 1 closure kept, 2 closure refused]
+let route = [];                // [[x, y], ...]: the last route asked of the map (map/route)
 let currentExperience = null;
 let updates = 0;
 let drawPending = false;
+let finished = false;          // the run has finished (the source said so)
 
 const $ = (id) => document.getElementById(id);
 const svg = $("map");
@@ -42,6 +44,7 @@ function applyState(state) {
     experiences.clear();
     for (const [id, x, y] of state.map.experiences) experiences.set(id, [x, y]);
     links = state.map.links;
+    route = state.map.route || [];
   }
   currentExperience = state.current_experience;
   showCounters(state.counters, state.connected);
@@ -74,7 +77,11 @@ function showCounters(c, connected) {
   text("gaps", c.gaps);
   text("services-alive", c.services_alive);
   const activity = $("activity");
-  if (!connected) {
+  finished = c.finished != null;
+  if (finished) {
+    activity.textContent = `finished · ${c.finished.frames} frames`;
+    activity.className = "badge done";
+  } else if (!connected) {
     activity.textContent = "waiting for the Zenoh router";
     activity.className = "badge off";
   } else if (c.since_last_frame_s === null) {
@@ -163,7 +170,7 @@ function showLoopClosures(closures) {
   const list = $("loop-closure-list");
   const html = closures.length
     ? closures.map((c) => `<li>frame ${c.frame} ↔ frame ${c.matched_frame} · template ${c.template} · ${c.votes} votes</li>`).join("")
-    : '<li class="none">none yet</li>';
+    : `<li class="none">${finished ? "none" : "none yet"}</li>`;
   if (list.innerHTML !== html) list.innerHTML = html;
 }
 
@@ -171,9 +178,10 @@ function showServices(rows) {
   const body = document.querySelector("#health tbody");
   const cell = (value) => `<td>${value === undefined || value === null ? "–" : value}</td>`;
   const html = rows.map((row) => {
-    const kind = !row.alive ? "dead" : row.silent ? "silent" : "";
+    const kind = row.stopped ? "stopped" : !row.alive ? "dead" : row.silent ? "silent" : "";
     const notes = [];
-    if (!row.alive) notes.push("no liveliness token");
+    if (row.stopped) notes.push("stopped");
+    else if (!row.alive) notes.push("no liveliness token");
     if (row.silent) notes.push("no recent status");
     for (const [name, value] of Object.entries(row.extra || {})) notes.push(`${name}=${value}`);
     return `<tr class="${kind}" title="${notes.join(" · ")}">` +
@@ -239,6 +247,8 @@ function draw() {
   $("loop-links").dataset.count = String(paths[1].length);
   $("refused-links").setAttribute("d", paths[2].join(""));
   $("refused-links").dataset.count = String(paths[2].length);
+  $("route").setAttribute("d", route.length ? "M" + route.map(([x, y]) => `${sx(x)},${sy(y)}`).join("L") : "");
+  $("route").dataset.count = String(route.length);
   const current = currentExperience === null ? undefined : experiences.get(currentExperience);
   $("current-experience").setAttribute("cx", current ? sx(current[0]) : "-100");
   $("current-experience").setAttribute("cy", current ? sy(current[1]) : "-100");
@@ -287,8 +297,9 @@ function connect() {
     $("connection").className = "badge on";
   };
   source.onerror = () => {
-    $("connection").textContent = "reconnecting…";
-    $("connection").className = "badge off";
+    // After a finished run the viewer is stopped with Ctrl-C: what the page shows is the run's end.
+    $("connection").textContent = finished ? "viewer stopped" : "reconnecting…";
+    $("connection").className = finished ? "badge" : "badge off";
   };
   source.onmessage = (event) => applyState(JSON.parse(event.data));
 }

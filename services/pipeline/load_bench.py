@@ -11,7 +11,6 @@ experience map run as usual.
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import tempfile
@@ -20,6 +19,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.common.settings import CommandParser
 from services.evaluation.results import format_table
 from services.pipeline.bench import KITTI_CAMERA
 from services.pipeline.runner import RunConfig, run_pipeline
@@ -169,7 +169,7 @@ def memory_rows(result: LoadResult) -> list[tuple[str, str, str, str, str]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="gridslam bench load", description=__doc__.splitlines()[0])
+    parser = CommandParser(prog="gridslam bench load", description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=2000, help="frames of the run (default 2000)")
     parser.add_argument("--listen", default="tcp/127.0.0.1:7462", help="router endpoint of the run")
     args = parser.parse_args(argv)

@@ -1,4 +1,5 @@
-"""The loop-closure and experience-map stages offline, on an image folder and a motion file:
+"""The offline map build (`gridslam map build`, `map sweep`): the loop-closure and
+experience-map stages on a source or an image folder and a motion file,
 the same cores as the services (view templates, the paper's consistency rule, the experience
 map and its log) driven frame by frame in one process, so a dataset's evidence (docs/mapping.md)
 is reproducible without a Zenoh network: the paper's Fig. 10 (template and experience ids over
@@ -31,7 +32,7 @@ from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.export import corrected_trajectory, graph_dict, odometry_trajectory
 from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams, MapState
 from services.expmap.store import MapStore, Step
-from services.gridcells.motion_io import add_noise, load_motion
+from services.evaluation.motion_io import add_noise, load_motion
 from services.gridcells.offline import run_deadreckoning, run_grid
 from services.loopclosure.detector import Confirmed, LoopClosureDetector
 

@@ -25,12 +25,12 @@ returns a ``Layout`` the world renders (services/source/synthetic.py).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
-from services.source.synthetic import LAMP_SPACING, PILLAR_SIZE, Route, in_region
+from services.common.geometry import wrap
+from services.source.world.layout import LAMP_SPACING, PILLAR_SIZE, RASTER, Layout, Twin, in_region
+from services.source.world.route import Route
 
 # Junctions and corners (x, y); the loops: A = a b e d, B = b c r f e, C = a g h i j b,
 # D = c p q r (p→q is the curved end).
@@ -59,20 +59,6 @@ TOUR = (
 ROUTE_START = 0.5  # fraction of the first edge (a→b) where the route starts
 
 
-@dataclass(frozen=True)
-class Twin:
-    """A look-alike pair: everything inside ``region`` (x0, x1, y0, y1; it must hold one
-    straight corridor and no junction) is copied to ``region + offset``."""
-
-    region: tuple[float, float, float, float]
-    offset: tuple[float, float]
-
-    def moved(self) -> tuple[float, float, float, float]:
-        x0, x1, y0, y1 = self.region
-        dx, dy = self.offset
-        return x0 + dx, x1 + dx, y0 + dy, y1 + dy
-
-
 def twins(corridor_width: float) -> tuple[Twin, ...]:
     """The two look-alike pairs: 20 m of the d–e corridor copied onto q–r, 17 m of b–e onto a–g."""
     across = corridor_width / 2 + 0.5  # the walls and the pillars against them
@@ -82,42 +68,7 @@ def twins(corridor_width: float) -> tuple[Twin, ...]:
     )
 
 
-RASTER = 0.02  # metres per pixel of the free-space raster the walls are traced from
 CURVE_TOLERANCE = 2.0  # pixels: a curved wall's segments stay this close to its traced (4-connected) stairs
-
-
-@dataclass(frozen=True)
-class Layout:
-    """What the world needs of a layout. Segments are (x0, y0, dx, dy); ``texture_of[k]`` is
-    the segment whose texture segment k shows (k itself, or its twin's original);
-    ``texture_shift[k]`` where along that segment (metres) segment k's texture starts;
-    ``lamp_schedule_of`` likewise for the lamps' on/off schedules."""
-
-    route: Route
-    segments: np.ndarray
-    texture_of: np.ndarray
-    texture_shift: np.ndarray
-    lamps: np.ndarray
-    lamp_headings: np.ndarray
-    lamp_schedule_of: np.ndarray
-    twins: tuple[Twin, ...]
-    free: np.ndarray            # free-space raster (uint8, 1 inside the corridors)
-    origin: tuple[float, float]  # world position of raster pixel (0, 0)
-
-    def is_free(self, x, y) -> np.ndarray:
-        """Whether world points lie inside the corridors (not in a wall, pillar or block)."""
-        col = np.rint((np.asarray(x) - self.origin[0]) / RASTER).astype(int)
-        row = np.rint((np.asarray(y) - self.origin[1]) / RASTER).astype(int)
-        inside = (row >= 0) & (row < self.free.shape[0]) & (col >= 0) & (col < self.free.shape[1])
-        result = np.zeros(np.shape(col), bool)
-        result[inside] = self.free[row[inside], col[inside]] > 0
-        return result
-
-    @property
-    def bounds(self) -> tuple[float, float, float, float]:
-        """(x0, y0, x1, y1) of the raster: the floor and ceiling must cover it."""
-        height, width = self.free.shape
-        return self.origin[0], self.origin[1], self.origin[0] + (width - 1) * RASTER, self.origin[1] + (height - 1) * RASTER
 
 
 def tour_nodes() -> list[str]:
@@ -155,10 +106,6 @@ def _headings(a: str, b: str) -> tuple[float, float, float]:
     return start + sense * math.pi / 2, end + sense * math.pi / 2, radius * sweep
 
 
-def _wrap(angle: float) -> float:
-    return math.remainder(angle, 2 * math.pi)
-
-
 def build_route(corridor_width: float) -> Route:
     """The tour as (length, curvature) pieces: straight corridors, the curved end, and a
     turn of radius corridor_width / 2 at every corner."""
@@ -168,7 +115,7 @@ def build_route(corridor_width: float) -> Route:
     turns, trims = [], []
     for k, (a, b) in enumerate(legs):
         arriving = _headings(*legs[k - 1])[1]
-        turn = _wrap(_headings(a, b)[0] - arriving)
+        turn = wrap(_headings(a, b)[0] - arriving)
         if abs(turn) > math.radians(100):
             raise AssertionError(f"campus tour: turn of {math.degrees(turn):.0f}° at {a}")
         if turn and (_arc(a, b) or _arc(*legs[k - 1])):
