@@ -68,7 +68,7 @@ def circuit_pose(k: int) -> tuple[float, float, float]:
 def map_stream(size: int, frames: int, build_every: int, burst: int, seed: int):
     """(frame, odometry pose, template, closure or None, timed?) for `size` + `frames` frames."""
     from services.common.geometry import between, compose
-    from services.expmap.graph import ClosureInput
+    from services.expmap.links import ClosureInput
 
     rng = np.random.default_rng(seed)
     lap = int(CIRCUIT_M)

@@ -49,11 +49,13 @@ import numpy as np
 
 from services.common.errors import ConfigError
 from services.common.geometry import adjoint, between, compose, inverse
+from services.expmap.links import ClosureInput, Link
+from services.expmap.localizer import Localizer
+from services.expmap.optimizers import PoseGraph, Relaxation
 
 OPTIMIZERS = ("gtsam", "ratslam")
 CLOSURES = ("metric", "ratslam")
 KERNELS = ("cauchy", "geman_mcclure", "dcs", "huber", "none")
-METHODS = ("stereo", "mono", "scanline")
 FATES = ("accepted", "rejected", "unmeasured", "unmatched")   # what becomes of a confirmed closure
 
 
@@ -105,50 +107,6 @@ class MapParams:
                 raise ConfigError(f"experience map: invalid {name} = {getattr(self, name)!r}")
 
 
-# --- links and closures ---------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Link:
-    """An edge: the pose of `target` in `source`'s frame (dx, dy, dheading)."""
-
-    source: int
-    target: int
-    dx: float
-    dy: float
-    dheading: float
-    frame: int
-    loop_closure: bool = False
-    accepted: bool = True       # False: a closure the map refused (kept as evidence, not optimised)
-
-    @property
-    def transform(self) -> tuple[float, float, float]:
-        return self.dx, self.dy, self.dheading
-
-
-@dataclass(frozen=True)
-class ClosureInput:
-    """A confirmed loop closure as the map takes it: the matched place, and (for metric
-    closures) the pose of the current frame in the matched frame's body frame with its 3×3
-    covariance (forward, left, yaw), row-major. `method` is how it was measured: stereo, mono
-    (forward/left a unit direction: the length comes from the odometry) or scanline; an empty
-    method means no measurement (its geometry failed): the map does not use it."""
-
-    matched_template: int
-    matched_frame: int
-    method: str = ""
-    forward: float = 0.0
-    left: float = 0.0
-    yaw: float = 0.0
-    covariance: tuple[float, ...] = ()
-    votes: int = 0                 # evidence only (loop_closures.csv): the consistency rule's votes,
-    inliers: int = 0               # the feature matches behind the measurement,
-    geometry_error: str = ""       # why there is no measurement
-    frame: int = -1                # the revisiting frame when it is an earlier one than the step's (-1: the step's)
-
-    @property
-    def measured(self) -> bool:
-        return self.method in METHODS and len(self.covariance) == 9
-
-
 @dataclass
 class FrameResult:
     """What one frame did to the map."""
@@ -180,7 +138,6 @@ class MapState:
     links: list[Link]
 
 
-MOVED = np.array([1e-3, 1e-3, 1e-4])   # what counts as moved: 1 mm, 0.1 mrad
 IDENTITY = (0.0, 0.0, 0.0)
 # Frames whose offset covariance is kept, for closures of earlier frames of a confirmed run (the
 # consistency rule's window is ten frames).
@@ -214,7 +171,6 @@ class ExperienceMap:
         self._new_part = False                          # the next frame starts a part (a new session)
         self._joining: list[tuple] = []                 # recent placements of a part in another's frame (_join)
         self.localizer = None                           # a localisation session on this map (localizer.py)
-        from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
         self.optimizer = PoseGraph(self) if params.optimizer == "gtsam" else Relaxation(self)
 
     def __len__(self) -> int:
@@ -407,8 +363,6 @@ class ExperienceMap:
         """The frames from here on are a later session on this map: its own part of the graph until
         closures join it, or (``localize``) a localisation that adds nothing to the map."""
         if localize:
-            from services.expmap.localizer import Localizer
-
             self.localizer = Localizer(self.final_poses(), {f: (e, o) for f, e, o in self.frames}, aliased=self.aliased())
         else:
             self._new_part = True

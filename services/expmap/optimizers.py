@@ -50,7 +50,7 @@ import bisect
 import numpy as np
 
 from services.common.geometry import compose, wrap
-from services.expmap.graph import MOVED, ExperienceMap, Link
+from services.expmap.links import MOVED, Link
 
 # Published poses refreshed per solve besides those the solver re-eliminated: every solved
 # experience is refreshed at least once every len(map) / REFRESH_PER_SOLVE solves.
@@ -68,8 +68,8 @@ BULK_ESTIMATE = 64          # junction estimates read from the solver one by one
 
 
 class PoseGraph:
-    def __init__(self, experience_map: ExperienceMap):
-        import gtsam   # imported here: the ratslam optimiser and the map's readers need no gtsam
+    def __init__(self, experience_map):   # the map it places (graph.ExperienceMap)
+        import gtsam  # imported here: the ratslam optimiser and the map's readers need no gtsam
 
         self.gtsam = gtsam
         self.map = experience_map
@@ -592,7 +592,7 @@ def _between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _adjoint(pose: np.ndarray) -> np.ndarray:
-    """graph.adjoint of each pose: pose ∘ Exp(ε) = Exp(Ad ε) ∘ pose."""
+    """geometry.adjoint of each pose: pose ∘ Exp(ε) = Exp(Ad ε) ∘ pose."""
     c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
     result = np.zeros((len(pose), 3, 3))
     result[:, 0, 0], result[:, 0, 1], result[:, 0, 2] = c, -s, pose[:, 1]
@@ -648,7 +648,7 @@ def _chain_poses(steps: np.ndarray) -> np.ndarray:
 
 
 class Relaxation:
-    def __init__(self, experience_map: ExperienceMap):
+    def __init__(self, experience_map):   # the map it places (graph.ExperienceMap)
         self.map = experience_map
         self._clear()
 

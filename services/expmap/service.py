@@ -25,7 +25,18 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate, Point, ViewTemplate
+from schemas import (
+    Experience,
+    GridPose,
+    Link,
+    LoopClosure,
+    MapPose,
+    MapRoute,
+    MapSnapshot,
+    MapUpdate,
+    Point,
+    ViewTemplate,
+)
 from services.common.config import load_config
 from services.common.convert import planar_pose
 from services.common.errors import ConfigError, DataError, PersistenceError
@@ -33,10 +44,17 @@ from services.common.journal import SESSION, continue_session
 from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.expmap.graph import MOVED, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
+from services.expmap.graph import ExperienceMap, FrameResult, MapParams, MapState
 from services.expmap.joiner import FrameJoiner
+from services.expmap.links import MOVED, ClosureInput
 from services.expmap.route import shortest_route
-from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, header
+from services.expmap.store import (
+    CheckpointPolicy,
+    MapStore,
+    Step,
+    checkpoint_path,
+    header,
+)
 
 log = logging.getLogger(__name__)
 

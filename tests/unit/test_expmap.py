@@ -19,14 +19,22 @@ from schemas import GridPose, Header, LoopClosure, PlanarIncrement, Time, ViewTe
 from services.cli import main as gridslam
 from services.common.convert import planar_pose
 from services.common.errors import DataError
+from services.common.geometry import between, compose, wrap
 from services.common.runtime import RuntimeConfig
 from services.evaluation import metrics
 from services.evaluation.trajectory import Trajectory, read_tum
 from services.expmap.export import MapExportError, export_map, graph_dict, read_log
-from services.common.geometry import between, compose, wrap
-from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, Link, MapParams
+from services.expmap.graph import ExperienceMap, FrameResult, MapParams
+from services.expmap.links import ClosureInput, Link
 from services.expmap.service import ExpMapConfig, ExpMapService
-from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, replay, write_checkpoint
+from services.expmap.store import (
+    CheckpointPolicy,
+    MapStore,
+    Step,
+    checkpoint_path,
+    replay,
+    write_checkpoint,
+)
 
 QUARTER = math.pi / 2
 

@@ -11,11 +11,18 @@ import math
 import numpy as np
 import pytest
 
-from services.common.layout import session_base
 from services.common.geometry import between, compose, wrap
-from services.expmap.graph import JOINED_PRIOR_SIGMA, ClosureInput, ExperienceMap, MapParams
+from services.common.layout import session_base
+from services.expmap.graph import JOINED_PRIOR_SIGMA, ExperienceMap, MapParams
+from services.expmap.links import ClosureInput
 from services.expmap.store import MapStore, Step, sessions_of
-from tests.unit.test_expmap import CLOSURE_COVARIANCE, drive_square, least_squares, same_state, whole_graph_innovation
+from tests.unit.test_expmap import (
+    CLOSURE_COVARIANCE,
+    drive_square,
+    least_squares,
+    same_state,
+    whole_graph_innovation,
+)
 
 PARAMS = MapParams(new_experience_distance=0.6)
 B = session_base(1)
