@@ -17,10 +17,12 @@
   The graph is solved only on frames with a closure: between closures the map is a chain, and
   a new experience's estimate is its predecessor's composed with the odometry, exactly what the
   solver would give, so such frames cost nothing that grows with the map.
-  The solver holds only the *junctions*: the first experience, the two ends of every closure
-  tested, an experience two chains leave (RatSLAM's snap). Between two junctions the map is a
-  chain of odometric links whose inner experiences have no other factor; it enters the solver as
-  one factor between its ends, the links composed and their covariances carried along it. That
+  The solver holds only the *junctions*: the first experience of each part of the graph (the
+  map's, and a later session's until closures join it: graph.py; each held by its prior, made
+  weak on the join), the two ends of every closure tested, an experience two chains leave
+  (RatSLAM's snap). Between two junctions the map is a chain of odometric links whose inner
+  experiences have no other factor; it enters the solver as one factor between its ends, the
+  links composed and their covariances carried along it. That
   is exactly the graph with the inner experiences eliminated where the chain is straight, and to
   second order where the closures bend it: a chain's factor is relinearised (`_chain_factors_at`)
   when its ends move relative to each other as iSAM2 relinearises a variable. An inner
@@ -38,7 +40,7 @@
 
 Both write the map's published poses (ExperienceMap._poses) and report which experiences moved,
 and both can be rebuilt from the map's state (`state`, `rebuild`: ExperienceMap.rebase). The pose
-graph is rebuilt as a fresh iSAM2 given every factor the graph holds (the prior, the chains' as
+graph is rebuilt as a fresh iSAM2 given every factor the graph holds (the priors, the chains' as
 they were linearised, the accepted closures under their kernel) with the junctions at the
 estimates they had, in a few updates, oldest first; the chains are made again from the links.
 """
