@@ -22,7 +22,14 @@ from services.evaluation import metrics
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.graph import ExperienceMap, MapParams
-from services.expmap.store import FORMAT, VERSION, Step, parse_records, rebuild, sessions_of
+from services.expmap.store import (
+    FORMAT,
+    VERSION,
+    Step,
+    parse_records,
+    rebuild,
+    sessions_of,
+)
 
 log = logging.getLogger(__name__)
 

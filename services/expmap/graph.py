@@ -23,19 +23,20 @@ frame's view template id, and a confirmed loop closure when there is one:
   - `ratslam`: RatSLAM's graph relaxation (optimizers.Relaxation); every closure is accepted.
 
 A frame's cost does not grow with the map under `gtsam`: experiences are found by dictionaries,
-links are appended, the solver's update touches what a closure affects, and the published poses
-are refreshed for what the solver re-eliminated plus a fixed number of others per frame
-(optimizers.REFRESH_PER_FRAME), so every experience is refreshed within a bounded number of
-frames. `final_poses()` gives every experience's best estimate (for exports).
+links are appended, the solver holds only the experiences closures join (optimizers.PoseGraph)
+and its update touches what a closure affects, and the published poses are refreshed for what
+the solver re-eliminated plus a fixed number of others per solve (optimizers.REFRESH_PER_SOLVE),
+so every experience is refreshed within a bounded number of solves. `final_poses()` gives every
+experience's best estimate (for exports).
 
 Everything is deterministic: the same inputs in the same order give the same map, which is
 what lets a restarted service rebuild its map by replaying the log of its inputs. `rebase()`
 is part of those inputs: it returns the map's whole state as arrays (`state()`) and rebuilds the
-optimiser from it (gtsam: a fresh iSAM2 given every factor in one update, at the current
-linearisation point), so a map restored from that state (`ExperienceMap.restore`) goes on
-exactly, bit for bit, as the rebased one. iSAM2's incremental state itself cannot be saved, and
-a batch solve differs from it by up to a millimetre; rebasing the live map at the same point
-makes the restored map the same map (services/expmap/store.py writes such checkpoints).
+optimiser from it (gtsam: a fresh iSAM2 given every factor, at the current estimate), so a map
+restored from that state (`ExperienceMap.restore`) goes on exactly, bit for bit, as the rebased
+one. iSAM2's incremental state itself cannot be saved, and a fresh solve differs from it by up
+to about a centimetre; rebasing the live map at the same point makes the restored map the same
+map (services/expmap/store.py writes such checkpoints).
 """
 
 from __future__ import annotations
@@ -49,10 +50,12 @@ import numpy as np
 from services.common.geometry import adjoint, between, compose, inverse
 from services.common.settings import check, setting
 from services.common.stages import CLOSURES, MAP_OPTIMIZERS
+from services.expmap.links import ClosureInput, Link
+from services.expmap.localizer import Localizer
+from services.expmap.optimizers import PoseGraph, Relaxation
 
 OPTIMIZERS = MAP_OPTIMIZERS
 KERNELS = ("cauchy", "geman_mcclure", "dcs", "huber", "none")
-METHODS = ("stereo", "mono", "scanline")
 FATES = ("accepted", "rejected", "unmeasured", "unmatched")   # what becomes of a confirmed closure
 
 
@@ -102,50 +105,6 @@ class MapParams:
         check(self)
 
 
-# --- links and closures ---------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Link:
-    """An edge: the pose of `target` in `source`'s frame (dx, dy, dheading)."""
-
-    source: int
-    target: int
-    dx: float
-    dy: float
-    dheading: float
-    frame: int
-    loop_closure: bool = False
-    accepted: bool = True       # False: a closure the map refused (kept as evidence, not optimised)
-
-    @property
-    def transform(self) -> tuple[float, float, float]:
-        return self.dx, self.dy, self.dheading
-
-
-@dataclass(frozen=True)
-class ClosureInput:
-    """A confirmed loop closure as the map takes it: the matched place, and (for metric
-    closures) the pose of the current frame in the matched frame's body frame with its 3×3
-    covariance (forward, left, yaw), row-major. `method` is how it was measured: stereo, mono
-    (forward/left a unit direction: the length comes from the odometry) or scanline; an empty
-    method means no measurement (its geometry failed): the map does not use it."""
-
-    matched_template: int
-    matched_frame: int
-    method: str = ""
-    forward: float = 0.0
-    left: float = 0.0
-    yaw: float = 0.0
-    covariance: tuple[float, ...] = ()
-    votes: int = 0                 # evidence only (loop_closures.csv): the consistency rule's votes,
-    inliers: int = 0               # the feature matches behind the measurement,
-    geometry_error: str = ""       # why there is no measurement
-    frame: int = -1                # the revisiting frame when it is an earlier one than the step's (-1: the step's)
-
-    @property
-    def measured(self) -> bool:
-        return self.method in METHODS and len(self.covariance) == 9
-
-
 @dataclass
 class FrameResult:
     """What one frame did to the map."""
@@ -177,7 +136,6 @@ class MapState:
     links: list[Link]
 
 
-MOVED = np.array([1e-3, 1e-3, 1e-4])   # what counts as moved: 1 mm, 0.1 mrad
 IDENTITY = (0.0, 0.0, 0.0)
 # Frames whose offset covariance is kept, for closures of earlier frames of a confirmed run (the
 # consistency rule's window is ten frames).
@@ -211,7 +169,6 @@ class ExperienceMap:
         self._new_part = False                          # the next frame starts a part (a new session)
         self._joining: list[tuple] = []                 # recent placements of a part in another's frame (_join)
         self.localizer = None                           # a localisation session on this map (localizer.py)
-        from services.expmap.optimizers import PoseGraph, Relaxation   # they place this map's poses
         self.optimizer = PoseGraph(self) if params.optimizer == "gtsam" else Relaxation(self)
 
     def __len__(self) -> int:
@@ -377,18 +334,20 @@ class ExperienceMap:
     def _move_part(self, part: int, into: int, transform: tuple[float, float, float]) -> None:
         """Move every experience of ``part`` by ``transform`` into the frame of part ``into``,
         which it joins: the graph is rebuilt at the moved poses, the part's prior made weak."""
-        members = [index for index, p in enumerate(self.parts) if p == part]
+        members = np.flatnonzero(np.array(self.parts) == part)
         state = self.state()
-        for key in ("poses", "theta"):
-            if key in state:
-                for index in members:
-                    state[key][index] = compose(transform, tuple(state[key][index]))
+        rows = {"poses": members}
+        if "junctions" in state:   # the pose graph's estimates, of its junctions (optimizers.PoseGraph)
+            rows["theta"] = np.flatnonzero(np.isin(state["junctions"], members))
+        for key, moved in rows.items():
+            for row in moved.tolist():
+                state[key][row] = compose(transform, tuple(state[key][row]))
         if "part_priors" in state:   # the part's prior goes with it, weak: the closures hold it now
             for row in state["part_priors"]:
                 if int(row[0]) == self.anchors[part]:
                     row[1:4] = compose(transform, tuple(row[1:4]))
                     row[4] = JOINED_PRIOR_SIGMA
-        for index in members:
+        for index in members.tolist():
             self._poses[index] = state["poses"][index]
             self.parts[index] = into
         del self.anchors[part]
@@ -402,8 +361,6 @@ class ExperienceMap:
         """The frames from here on are a later session on this map: its own part of the graph until
         closures join it, or (``localize``) a localisation that adds nothing to the map."""
         if localize:
-            from services.expmap.localizer import Localizer
-
             self.localizer = Localizer(self.final_poses(), {f: (e, o) for f, e, o in self.frames}, aliased=self.aliased())
         else:
             self._new_part = True

@@ -31,9 +31,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.common.settings import check, setting
 from services.common.geometry import adjoint, between, compose, inverse, wrap
-from services.expmap.graph import ClosureInput
+from services.common.settings import check, setting
+from services.expmap.links import ClosureInput
 
 RECENT_ODOMETRY = 64   # frames whose odometry pose is kept (a confirmed run's frames are within ten)
 

@@ -26,13 +26,14 @@ import numpy as np
 
 from services.common.errors import DataError
 from services.evaluation import metrics
+from services.evaluation.motion_io import add_noise, load_motion
 from services.evaluation.plots import new_figure, save
 from services.evaluation.results import write_json
 from services.evaluation.trajectory import Trajectory, write_tum
 from services.expmap.export import corrected_trajectory, graph_dict, odometry_trajectory
-from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams, MapState
+from services.expmap.graph import ExperienceMap, MapParams, MapState
+from services.expmap.links import ClosureInput, Link
 from services.expmap.store import MapStore, Step
-from services.evaluation.motion_io import add_noise, load_motion
 from services.gridcells.offline import run_deadreckoning, run_grid
 from services.loopclosure.detector import Confirmed, LoopClosureDetector
 

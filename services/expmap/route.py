@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.expmap.graph import Link
+from services.expmap.links import Link
 
 
 @dataclass(frozen=True)

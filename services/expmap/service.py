@@ -35,10 +35,17 @@ from services.common.layout import add_map_reuse_arguments, map_files, session_b
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.common.settings import add_flag, config_fields, params_of
-from services.expmap.graph import MOVED, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
+from services.expmap.graph import ExperienceMap, FrameResult, MapParams, MapState
 from services.expmap.joiner import FrameJoiner
+from services.expmap.links import MOVED, ClosureInput
 from services.expmap.route import shortest_route
-from services.expmap.store import CheckpointPolicy, MapStore, Step, checkpoint_path, header
+from services.expmap.store import (
+    CheckpointPolicy,
+    MapStore,
+    Step,
+    checkpoint_path,
+    header,
+)
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from services.common.journal import SESSION, Journal, JournalError
-from services.expmap.graph import ClosureInput, ExperienceMap, FrameResult, MapParams
+from services.expmap.graph import ExperienceMap, FrameResult, MapParams
+from services.expmap.links import ClosureInput
 
 log = logging.getLogger(__name__)
 

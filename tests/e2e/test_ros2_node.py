@@ -107,7 +107,7 @@ def test_nubot_run_is_a_ros2_node_heard_by_an_outside_rmw_zenoh_client(router, s
 
     # The last Path: every frame on the map as the node last had it. The run's map.tum is the
     # map's final estimate after the run, of which expmap publishes the moves larger than 1 mm or
-    # 0.1 mrad (graph.MOVED): the path stays within a few of those (5.1 mm seen here).
+    # 0.1 mrad (links.MOVED): the path stays within a few of those (5.1 mm seen here).
     final = read_tum(out / "map.tum")
     path = client.received["/gridslam/path"][-1]
     assert len(path.poses) == NUBOT_FRAMES

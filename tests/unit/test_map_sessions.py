@@ -9,12 +9,20 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
+from services.common.geometry import between, compose, wrap
 from services.common.layout import session_base
-from services.common.geometry import between
-from services.expmap.graph import ClosureInput, ExperienceMap, MapParams
+from services.expmap.graph import JOINED_PRIOR_SIGMA, ExperienceMap, MapParams
+from services.expmap.links import ClosureInput
 from services.expmap.store import MapStore, Step, sessions_of
-from tests.unit.test_expmap import CLOSURE_COVARIANCE, drive_square
+from tests.unit.test_expmap import (
+    CLOSURE_COVARIANCE,
+    drive_square,
+    least_squares,
+    same_state,
+    whole_graph_innovation,
+)
 
 PARAMS = MapParams(new_experience_distance=0.6)
 B = session_base(1)
@@ -58,9 +66,10 @@ def session(start: int, count: int, batches: dict[int, list[tuple[int, int]]]):
     return frames
 
 
-def drive(experience_map: ExperienceMap, frames) -> list:
+def drive(experience_map: ExperienceMap, frames, first: int = 0) -> list:
+    """Step the map through a session's frames (``first``: the session frame they start at)."""
     results = []
-    for k, (frame, _, odometry, closures) in enumerate(frames):
+    for k, (frame, _, odometry, closures) in enumerate(frames, start=first):
         own = next((dataclasses.replace(c, frame=-1) for c in closures if c.frame == frame), None)
         earlier = tuple(c for c in closures if c.frame != frame)
         results.append(experience_map.step(frame, odometry, 1000 + k, own, None, earlier))
@@ -84,6 +93,59 @@ def test_a_later_session_is_its_own_part_until_consistent_closures_join_it_into_
     assert [fate for _, fate, _ in results[16].decisions].count("accepted") == 7
     for result, (_, true_pose, _, _) in zip(results[16:], frames[16:]):   # in the saved map's frame now
         assert math.dist(result.pose[:2], true_pose[:2]) < 0.05
+
+
+def drifting(frames, heading_drift: float):
+    """The session's frames with odometry whose heading drifts by ``heading_drift`` rad a frame."""
+    odometry, result = frames[0][2], []
+    for k, (frame, true_pose, _, closures) in enumerate(frames):
+        if k:
+            dx, dy, dheading = between(frames[k - 1][1], true_pose)
+            odometry = compose(odometry, (dx, dy, dheading + heading_drift))
+        result.append((frame, true_pose, odometry, closures))
+    return result
+
+
+JOINED_SESSION = drifting(session(40, 51, {**true_batch(40, 16), **true_batch(40, 50)}), 0.002)
+
+
+def test_a_joined_map_is_the_least_squares_solution_of_its_whole_graph_and_tests_closures_by_it():
+    # The session (its heading drifting 2 mrad a frame) joined at its frame 16, its prior made
+    # weak; closures again at frame 50. The map is its whole graph's solution, both parts' priors
+    # in it (1.0 mm and 0.3 mrad from it; with every experience in the solver, 2.8 mm), and the
+    # last closure's test statistic the whole graph's innovation (2.4 % off; with every experience
+    # in the solver, 14 %).
+    experience_map = saved_map()
+    saved = len(experience_map)
+    experience_map.start_session()
+    results = drive(experience_map, JOINED_SESSION)
+    assert results[16].joined == [1]
+    assert [fate for _, fate, _ in results[50].decisions] == ["accepted"] * 7
+    state = experience_map.state()
+    assert state["part_priors"][:, [0, 4]].tolist() == [[saved, JOINED_PRIOR_SIGMA]]   # the session's first experience
+    assert len(state["junctions"]) < len(experience_map) / 3
+    poses = experience_map.final_poses()
+    solution, _, _ = least_squares(experience_map, poses)
+    assert poses[:, :2] == pytest.approx(solution[:, :2], abs=2e-3)
+    assert np.abs(wrap(poses[:, 2] - solution[:, 2])).max() < 5e-4
+    last = len(experience_map.links) - 1
+    assert experience_map.links[last].loop_closure
+    expected = whole_graph_innovation(experience_map, last)
+    assert expected > 0.2   # the drift the closure corrects
+    assert experience_map.residuals[-1] == pytest.approx(expected, rel=0.05)
+
+
+def test_a_map_of_two_parts_restored_from_its_state_goes_on_bit_for_bit_as_the_rebased_one():
+    # Rebased before the join (two parts, each with its prior), after it, and between closures.
+    for split in (10, 17, 30):
+        live = saved_map()
+        live.start_session()
+        drive(live, JOINED_SESSION[:split])
+        restored = ExperienceMap.restore(PARAMS, {key: value.copy() for key, value in live.rebase().items()})
+        assert len(live.anchors) == (2 if split <= 16 else 1)
+        for k in range(split, len(JOINED_SESSION)):
+            assert drive(restored, JOINED_SESSION[k:k + 1], k)[0].moved == drive(live, JOINED_SESSION[k:k + 1], k)[0].moved
+        same_state(restored, live)
 
 
 def test_closures_that_disagree_or_reach_places_with_look_alikes_join_nothing():
