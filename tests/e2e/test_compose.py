@@ -208,7 +208,10 @@ def test_estimator_override_demands_an_estimator(compose):
 def test_compose_resolves_to_the_documented_topology(compose):
     services = resolved(compose)["services"]
     robot_env = read_env_file(ROBOT_ENV)
-    assert set(services) == {"router", *PIPELINE, *(f"{name}-b" for name in PIPELINE)}
+    assert set(services) == {"router", "fleetmap", *PIPELINE, *(f"{name}-b" for name in PIPELINE)}
+    fleetmap = services.pop("fleetmap")   # the fleet profile's map over every robot's (docs/fleet.md)
+    assert fleetmap["profiles"] == ["fleet"] and fleetmap["command"][:2] == ["service", "fleetmap"]
+    assert volumes_of(fleetmap)["/results"] == ("results", False)
 
     router = services["router"]
     assert router["command"] == ["router", "--listen", "tcp/0.0.0.0:7447", "--zenoh-config", "/app/deploy/router.json5"]
@@ -274,7 +277,7 @@ def test_secure_override_gives_each_service_its_own_certificate(compose):
     assert tls_paths_in(REPO / "deploy" / "acl" / "router.json5") <= set(router_mounts)
     assert Path(router_mounts["/etc/gridslam/tls/node.key"][0]) == certs / "router.key"
     for name, service in services.items():
-        if name == "router":
+        if name in ("router", "fleetmap"):   # the fleet profile is not in the secure override (docs/fleet.md)
             continue
         environment, mounts = service["environment"], volumes_of(service)
         assert environment["GRIDSLAM_RUNTIME_CONNECT"] == "tls/router:7447", name
