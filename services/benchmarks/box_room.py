@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from services.egomotion.base import invert_transform, transform_from_increment
-from services.source.frames import Camera, Frame
+from services.common.frames import Camera, Frame
 
 TEXELS_PER_M = 160.0
 TEXTURE_SIZE = 1024

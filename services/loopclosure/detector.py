@@ -40,7 +40,7 @@ from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule,
 from services.loopclosure.geometry import ClosureGeometry, Features, GeometryParams, Keyframe
 from services.loopclosure.places import PLACE_RECOGNITIONS, Recognised, recogniser
 from services.loopclosure.templates import ViewMatch
-from services.source.frames import Camera
+from services.common.frames import Camera
 
 GEOMETRIES = ("auto", "scanline", "none")
 MEMORY_KEYFRAMES = 4096   # keyframes kept without a store (the oldest go first)

@@ -49,7 +49,7 @@ import numpy as np
 from services.common.errors import ConfigError, DataError
 from services.egomotion.base import grey, increment_from_transform, invert_transform, transform_from_rt
 from services.egomotion.features import TrackParams, track
-from services.source.frames import Camera
+from services.common.frames import Camera
 
 log = logging.getLogger(__name__)
 

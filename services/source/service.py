@@ -45,7 +45,7 @@ from services.common.service import Service
 from services.common.settings import add_renamed_flag
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
-from services.source.frames import Frame, FrameSource
+from services.common.frames import Frame, FrameSource
 from services.source.laps import Laps
 from services.source.replay import Pacer, ReplayController, ReplayParams, Resend
 from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
