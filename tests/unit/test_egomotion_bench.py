@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from services.common.errors import ConfigError
-from services.egomotion import bench
+from services.benchmarks import egomotion as bench
 
 CHECKOUT = Path(__file__).resolve().parents[2]
 

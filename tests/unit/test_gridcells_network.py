@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from services.common.errors import ConfigError
-from services.gridcells.bench import FullSheetNetwork
+from services.benchmarks.gridcells import FullSheetNetwork
 from services.gridcells.decoders import decode_subpixel
 from services.gridcells.integrator import LATTICE_RATE
 from services.gridcells.network import (

@@ -3,7 +3,7 @@ the same frames through `stereo:FOLDER`, with the camera it was rendered with.""
 
 import numpy as np
 
-from services.pipeline.bench import write_stereo_folder
+from services.benchmarks.pipeline import write_stereo_folder
 from services.common.frames import Camera
 from services.source.spec import open_source
 

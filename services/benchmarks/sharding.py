@@ -12,7 +12,7 @@ from pathlib import Path
 
 from services.common.settings import CommandParser
 from services.evaluation.results import format_table
-from services.pipeline.bench import free_port
+from services.benchmarks.pipeline import free_port
 from services.pipeline.runner import RunConfig, run_pipeline
 
 NUBOT = Path("../shared/data/nubot_scene1")
