@@ -16,8 +16,8 @@ from typing import Iterator, Sequence
 import cv2
 import numpy as np
 
-from services.source.calibration import read_calibration, read_kitti_calibration
 from services.common.frames import Camera, Frame, SourceError
+from services.source.calibration import read_calibration, read_kitti_calibration
 
 log = logging.getLogger(__name__)
 

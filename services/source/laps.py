@@ -18,8 +18,8 @@ import dataclasses
 import logging
 from collections.abc import Iterator
 
-from services.common.geometry import planar_motion
 from services.common.frames import Frame, FrameSource
+from services.common.geometry import planar_motion
 
 log = logging.getLogger(__name__)
 
