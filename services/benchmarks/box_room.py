@@ -14,7 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.egomotion.base import invert_transform, transform_from_increment
+from services.common.geometry import invert_transform, transform_from_increment
 from services.common.frames import Camera, Frame
 
 TEXELS_PER_M = 160.0

@@ -17,14 +17,13 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from services.common.geometry import increment_from_transform, transform_from_increment
 from services.egomotion.base import (
     EgomotionError,
     Estimator,
     EstimatorConfigError,
     Increment,
-    increment_from_transform,
     params_from_dict,
-    transform_from_increment,
 )
 from services.egomotion.mono import MonoEstimator, MonoParams
 from services.egomotion.passthrough import PassthroughEstimator, PassthroughParams

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.egomotion import EgomotionError, make_estimator
-from services.egomotion.base import increment_from_transform
+from services.common.geometry import increment_from_transform
 from services.benchmarks.box_room import pinhole, sequence
 from services.common.frames import Camera, Frame
 
