@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from services.common.geometry import planar_from_camera
-from services.gridcells.integrator import DeadReckoning, turn_first
+from services.common.odometry import DeadReckoning, turn_first
 
 STAGES = ("ground_truth", "egomotion", "grid", "map")
 LATENCY_SAMPLES = 20        # latency shown is the median of the last this many frames
