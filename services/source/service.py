@@ -412,7 +412,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start where the running services are (a source restarted mid-run)")
     add_world_arguments(parser)
     add_bag_arguments(parser)
-    from services.ros.node import add_graph_arguments
+    from services.ros.graph_settings import add_graph_arguments
 
     add_graph_arguments(parser)
 
@@ -437,7 +437,7 @@ def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
                          topics=bag_settings(config), fov=config.fov)
     graph = None
     if config.source.startswith("ros2:"):
-        from services.ros.node import Ros2Config, graph_flags, graph_params, load_graph_config
+        from services.ros.graph_settings import GraphConfig, graph_flags, graph_params, load_graph_config
 
-        graph = graph_params(load_graph_config(Ros2Config, graph_flags(args), args.config))
+        graph = graph_params(load_graph_config(GraphConfig, graph_flags(args), args.config))
     return SourceService(runtime, config, frames, args.instance, graph=graph).run()
