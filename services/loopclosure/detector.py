@@ -1,6 +1,6 @@
 """The loop-closure detector, a pure core: place recognition, the paper's consistency rule, and the
 geometry of a confirmed closure, frame by frame. The loopclosure service and the offline map
-build (services/expmap/offline.py) drive the same object.
+build (services/offline/mapping.py) drive the same object.
 
 Per frame: the view is recognised (`place_recognition`, one of PLACE_RECOGNITIONS):
 

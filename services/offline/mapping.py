@@ -33,7 +33,7 @@ from services.expmap.export import corrected_trajectory, graph_dict, odometry_tr
 from services.expmap.graph import ClosureInput, ExperienceMap, Link, MapParams, MapState
 from services.expmap.store import MapStore, Step
 from services.evaluation.motion_io import add_noise, load_motion
-from services.gridcells.offline import run_deadreckoning, run_grid
+from services.offline.integration import run_deadreckoning, run_grid
 from services.loopclosure.detector import Confirmed, LoopClosureDetector
 
 log = logging.getLogger(__name__)
