@@ -1,5 +1,5 @@
 # Quick start (README): `make demo` installs into .venv and runs the demo;
-# `make test` installs into .venv and runs the whole test suite (.ci/run calls it).
+# `make test` installs into .venv, runs the linter (ruff) and the whole test suite (.ci/run calls it).
 VENV ?= .venv
 PYTHON ?= python3
 BIN = $(VENV)/bin
@@ -14,9 +14,11 @@ $(BIN)/gridslam: pyproject.toml
 demo: $(BIN)/gridslam
 	$(BIN)/gridslam demo
 
-# One BLAS thread per process: tests and services share two cores, and idle BLAS threads
-# spinning on busy cores slow small matrix work a hundredfold.
+# The linter first ([tool.ruff] in pyproject.toml), then the suite. One BLAS thread per process:
+# tests and services share two cores, and idle BLAS threads spinning on busy cores slow small
+# matrix work a hundredfold.
 test: $(BIN)/gridslam
+	$(BIN)/ruff check .
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q
 
 bench: $(BIN)/gridslam

@@ -14,8 +14,8 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
-import pytest
 
+from tests.extras import unavailable
 from tests.netutil import free_port, port_open, stop, wait_for
 
 # The flags headless Chromium needs on these machines: no sandbox as root, no GPU, and no
@@ -25,12 +25,6 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic
                   "--disable-dev-shm-usage", "--hide-scrollbars", "--window-size=1400,900"]
 
 
-def _unavailable(reason: str):
-    if os.environ.get("CI") == "true":
-        pytest.fail(f"{reason} (CI=true: the browser tests must run)")
-    pytest.skip(reason)
-
-
 def chromium_and_driver() -> tuple[str, str]:
     """Paths of chromium and chromedriver; installs the Debian packages when root, else skips
     (fails in CI)."""
@@ -38,16 +32,16 @@ def chromium_and_driver() -> tuple[str, str]:
     if all(found):
         return found
     if os.geteuid() != 0 or not shutil.which("apt-get"):
-        _unavailable("headless Chromium is absent (Debian packages chromium and chromium-driver) and cannot be "
+        unavailable("headless Chromium is absent (Debian packages chromium and chromium-driver) and cannot be "
                      "installed here (needs root and apt-get)")
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     for command in (["apt-get", "update"], ["apt-get", "install", "-y", "--no-install-recommends", "chromium", "chromium-driver"]):
         result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=900)
         if result.returncode != 0:
-            _unavailable(f"could not install Chromium: {' '.join(command)} failed: {result.stderr.strip().splitlines()[-1:]}")
+            unavailable(f"could not install Chromium: {' '.join(command)} failed: {result.stderr.strip().splitlines()[-1:]}")
     found = shutil.which("chromium"), shutil.which("chromedriver")
     if not all(found):
-        _unavailable("apt-get installed chromium and chromium-driver, but the programs are not on PATH")
+        unavailable("apt-get installed chromium and chromium-driver, but the programs are not on PATH")
     return found
 
 

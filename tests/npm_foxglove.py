@@ -9,33 +9,26 @@ that need it skip, and fail in CI (CI=true)."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 
-import pytest
 
+from tests.extras import unavailable
 from tests.netutil import REPO
 
 FOLDER = REPO / "tests" / "e2e" / "foxglove_client"
-
-
-def _unavailable(reason: str):
-    if os.environ.get("CI") == "true":
-        pytest.fail(f"{reason} (CI=true: the npm Foxglove client must run)")
-    pytest.skip(reason)
 
 
 def installed() -> str:
     """The node executable, with the client's packages installed."""
     node, npm = shutil.which("node"), shutil.which("npm")
     if node is None or npm is None:
-        _unavailable("Node.js and npm are needed for the npm @foxglove/ws-protocol client")
+        unavailable("Node.js and npm are needed for the npm @foxglove/ws-protocol client")
     if not (FOLDER / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
         done = subprocess.run([npm, "ci", "--no-audit", "--no-fund", "--loglevel=error"], cwd=FOLDER,
                               capture_output=True, text=True, timeout=300)
         if done.returncode != 0:
-            _unavailable(f"npm ci in {FOLDER} failed: {done.stderr.strip().splitlines()[-1:]}")
+            unavailable(f"npm ci in {FOLDER} failed: {done.stderr.strip().splitlines()[-1:]}")
     return node
 
 

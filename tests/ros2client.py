@@ -6,13 +6,13 @@ its own Zenoh session (rmw_zenoh's default session config) to the router on 127.
 from __future__ import annotations
 
 import importlib
-import os
 import shutil
 import sys
 import threading
 from pathlib import Path
 
-import pytest
+
+from tests.extras import require
 
 SHARE = Path(sys.prefix) / "share"
 PACKAGES = ("builtin_interfaces", "std_msgs", "geometry_msgs", "nav_msgs", "sensor_msgs", "visualization_msgs")
@@ -20,9 +20,7 @@ PACKAGES = ("builtin_interfaces", "std_msgs", "geometry_msgs", "nav_msgs", "sens
 
 def sdk():
     """The zenoh_ros2_sdk module: skipped where the test extra is missing, a failure in CI."""
-    if os.environ.get("CI") == "true":
-        return importlib.import_module("zenoh_ros2_sdk")
-    return pytest.importorskip("zenoh_ros2_sdk", reason="zenoh-ros2-sdk (test extra) is not installed")
+    return require("zenoh_ros2_sdk", "test")
 
 
 def message_folder(folder: Path) -> Path:

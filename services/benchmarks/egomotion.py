@@ -156,7 +156,7 @@ def profile(name: str, frames: list[Frame], top: int) -> list[tuple[str, float, 
     profiler.disable()
     count = len(frames) - 1
     rows = []
-    for (filename, line, function), (_, calls, own, cumulative, _) in pstats.Stats(profiler).stats.items():  # type: ignore[attr-defined]
+    for (filename, _, function), (_, calls, own, cumulative, _) in pstats.Stats(profiler).stats.items():  # type: ignore[attr-defined]
         if function == "<method 'disable' of '_lsprof.Profiler' objects>":
             continue
         where = function if filename == "~" else f"{Path(filename).stem}.{function}"

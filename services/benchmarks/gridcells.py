@@ -125,7 +125,7 @@ def measure(n: int, repeats: int, slow_repeats: int) -> dict[str, float]:
     for key, options in (("calibrated1", {}), ("calibrated3", {"modules": 3}), ("calibrated3_ring", {"modules": 3, "heading": "ring"})):
         integrators[key] = GridCellIntegrator(params, decoder="calibrated", velocity_scale=scale, heading0=HEADING, calibration_cache=False,
                                               calibration_grid=TIMING_GRID, **options)
-    for name, integrator in integrators.items():
+    for integrator in integrators.values():
         for _ in range(3):  # the first frame only stores the pattern; warm the caches
             integrator.step(SPEED, 0.0, 0.0)
     # Interleaved, so that a change of the machine's load touches all alike.

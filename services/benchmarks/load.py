@@ -141,10 +141,10 @@ def measure_load(frames: int, folder: Path, listen: str, window: int = 8) -> Loa
         result = run_pipeline(config, folder / "run", progress=progress)
     finally:
         sampler.stop()
-    stage = result.metrics["stages"]["map"]
+    online, final = result.metrics["stages"]["map_online"], result.metrics["stages"]["map"]
     restarts = {name: s["restarts"] for name, s in result.metrics["services"].items() if s.get("restarts")}
-    return LoadResult(frames, time.monotonic() - started, stage["throughput_fps"], stage["latency_ms"],
-                      stage["missing_frames"], sampler.processes, restarts)
+    return LoadResult(frames, time.monotonic() - started, online["throughput_fps"], online["latency_ms"],
+                      final["missing_frames"], sampler.processes, restarts)
 
 
 def growth(record: ProcessMemory, frames: int) -> tuple[int | None, int | None, float | None]:

@@ -49,7 +49,7 @@ def free_port() -> int:
 
 def measure(config: RunConfig, repeats: int, folder: Path) -> dict[str, float]:
     throughputs, p50s, p99s = [], [], []
-    last = "map" if config.mapping else "gridcells"
+    last = "map_online" if config.mapping else "gridcells"
     for repeat in range(repeats):
         run_config = config.model_copy(update={"listen": f"tcp/127.0.0.1:{free_port()}"})
         result = run_pipeline(run_config, folder / f"{last}-{repeat}-{len(list(folder.iterdir()))}")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from services.benchmarks.pipeline import free_port
 from services.common.settings import CommandParser
+from services.common.stages import INTEGRATORS
 from services.evaluation.results import format_table
 from services.pipeline.runner import RunConfig, run_pipeline
 
@@ -37,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="nubot", help="preset of every service (default nubot)")
     parser.add_argument("--egomotion", default="stereo", help="estimator (default stereo)")
     parser.add_argument("--instances", default="1,2", help="egomotion instance counts to compare (default 1,2)")
-    parser.add_argument("--integrator", choices=["grid", "deadreckoning"], default="grid", help="path integrator (default grid)")
+    parser.add_argument("--integrator", choices=INTEGRATORS, default="grid", help="path integrator (default grid)")
     parser.add_argument("--no-mapping", action="store_true", help="skip loop closure and the experience map")
     parser.add_argument("--frames", type=int, help="frames per run (default: the whole source)")
     parser.add_argument("--repeats", type=int, default=5, help="runs per instance count (default 5)")

@@ -7,10 +7,10 @@ import argparse
 from pathlib import Path
 
 from services.common.settings import add_renamed_flag
+from services.common.stages import DECODERS, HEADING_MODELS, STEP_SOURCES
 from services.evaluation.results import format_table
 from services.evaluation.motion_io import FORMATS
 
-DECODERS = ("paper", "fft", "subpixel", "calibrated")  # = integrator.DECODER_NAMES (a test checks), kept literal: scipy loads only when a command runs
 
 
 def velocity_scale(text: str) -> float | str:
@@ -37,13 +37,13 @@ def add_network_flags(parser: argparse.ArgumentParser) -> None:
                         help="Gaussian rotation noise per frame, standard deviation in degrees")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the noise (and of the simulated walk)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
-    add_renamed_flag(parser, "--step", "--step-source", dest="step", choices=("odometry", "lattice"))
-    parser.add_argument("--step-source", dest="step", choices=("odometry", "lattice"), default="odometry",
+    add_renamed_flag(parser, "--step", "--step-source", dest="step", choices=STEP_SOURCES)
+    parser.add_argument("--step-source", dest="step", choices=STEP_SOURCES, default="odometry",
                         help="step length from the input (default; paper eq. 5) or from the calibrated lattice flow "
                              "(needs --decoder calibrated)")
     parser.add_argument("--modules", type=int, default=1, metavar="N",
                         help="grid modules of different spacings, combined by precision (default 1; more need --decoder calibrated)")
-    parser.add_argument("--heading", choices=("sum", "ring"), default="sum",
+    parser.add_argument("--heading", choices=HEADING_MODELS, default="sum",
                         help="heading model: summed yaw (default, the paper's) or a head-direction ring attractor")
 
 
@@ -63,7 +63,7 @@ def register(subparsers) -> None:
                         help="CSV (forward,left,yaw | vx,vy[,heading] | LIBVISO2 columns), KITTI poses, TUM trajectory or rat .npz")
     parser.add_argument("--format", dest="fmt", metavar="|".join(FORMATS),
                         help="input format (default: from the extension, then the content)")
-    parser.add_argument("--decoder", choices=tuple(DECODERS), default="calibrated", help="how the lattice flow is read (default calibrated)")
+    parser.add_argument("--decoder", choices=DECODERS, default="calibrated", help="how the lattice flow is read (default calibrated)")
     parser.add_argument("--n-frames", type=int, metavar="N", help="only the first N rows")
     parser.add_argument("--network-rotation", type=float, default=0.0, metavar="DEG",
                         help="turn the world frame the network runs in by DEG (results are turned back): shows how much a "

@@ -18,6 +18,7 @@ import numpy as np
 
 from services.common.config import load_config, presets
 from services.common.errors import ConfigError
+from services.common.stages import INTEGRATORS
 from services.evaluation.results import format_table
 from services.expmap.service import add_map_arguments
 from services.loopclosure.service import add_place_recognition_argument
@@ -56,7 +57,7 @@ def register(subparsers) -> None:
         images.add_argument("--source", help="a source spec, e.g. stereo:../shared/data/nubot_scene1 (stereo closures)")
         command.add_argument("--odometry", type=Path, required=True,
                              help="motion file, one row per image (e.g. nubot_scene1/libviso2_egomotion.csv)")
-        command.add_argument("--integrator", choices=["deadreckoning", "grid"], default="deadreckoning",
+        command.add_argument("--integrator", choices=INTEGRATORS, default="deadreckoning",
                              help="how the motion is integrated (grid: the network, with the gridcells preset's speed)")
         command.add_argument("--noise-rot-deg", type=float, default=0.0, help="add Gaussian yaw noise per frame, degrees")
         command.add_argument("--noise-trans", type=float, default=0.0, help="add Gaussian translation noise, fraction of each step")

@@ -11,7 +11,8 @@ from pathlib import Path
 from services.common.config import has_named_preset, load_config, preset_services, preset_values, presets
 from services.common.layout import add_map_reuse_arguments
 from services.common.runtime import DEFAULT_ROUTER
-from services.common.settings import note_renamed
+from services.common.settings import add_flag, note_renamed
+from services.common.stages import ESTIMATORS, STEP_SOURCES, GridStageParams
 from services.expmap.service import add_map_arguments
 from services.loopclosure.service import add_place_recognition_argument
 from services.ros.graph_settings import add_graph_arguments, graph_flags
@@ -96,19 +97,16 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     given.add_argument("--step", type=old_step_value, action=OldStep, help=argparse.SUPPRESS)
 
     stages = parser.add_argument_group("stages")
-    stages.add_argument("--egomotion", choices=["scanline", "stereo", "mono", "passthrough"],
+    stages.add_argument("--egomotion", choices=ESTIMATORS,
                         help="ego-motion estimator (default: the preset's, else scanline; what each needs: below)")
     stages.add_argument("--egomotion-instances", type=int, metavar="N",
                         help="ego-motion processes sharing the frames (default 1, frame after frame; more run the "
                              "estimator in blocks, with the same results whatever their number; docs/pipeline.md)")
-    stages.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    stages.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"],
-                        help="lattice flow decoder (default calibrated)")
-    stages.add_argument("--step-source", choices=["odometry", "lattice"],
-                        help="where the grid cells take their step length from: the ego-motion (odometry, default) or "
-                             "the calibrated lattice flow (lattice)")
-    stages.add_argument("--modules", type=int, metavar="N", help="grid modules (default 1; more need --decoder calibrated)")
-    stages.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
+    for name in ("integrator", "decoder"):
+        add_flag(stages, GridStageParams, name)
+    add_flag(stages, GridStageParams, "step", flag="--step-source", dest="step_source")
+    add_flag(stages, GridStageParams, "modules", metavar="N")
+    add_flag(stages, GridStageParams, "heading")
     stages.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
                         help="skip loop closure and the experience map (default: both run)")
 
@@ -171,7 +169,7 @@ class OldStep(argparse.Action):
 
 def old_step_value(text: str) -> int | str:
     """`--step` (the old spelling): a frame stride (a positive integer) or the grid cells' step source."""
-    if text in ("odometry", "lattice"):
+    if text in STEP_SOURCES:
         return text
     try:
         value = int(text)

@@ -42,11 +42,16 @@ def service_parser(name: str):
     return parser, module.main
 
 
+def service_defaults(name: str, environ=None) -> dict[str, str | None]:
+    """The flags' defaults a service takes from the environment. A preset picks the config files
+    a service's settings are read from, so it cannot be one of them: it comes from --preset, else
+    GRIDSLAM_<SERVICE>_PRESET (containers)."""
+    return {"preset": (os.environ if environ is None else environ).get(f"GRIDSLAM_{name.upper()}_PRESET")}
+
+
 def run(args) -> int:
     parser, service_main = service_parser(args.name)
-    # A preset picks the config files a service's settings are read from, so it cannot be one of
-    # them: it comes from --preset, else GRIDSLAM_<SERVICE>_PRESET (containers).
-    parser.set_defaults(preset=os.environ.get(f"GRIDSLAM_{args.name.upper()}_PRESET"))
+    parser.set_defaults(**service_defaults(args.name))
     service_args = parser.parse_args(args.service_args)
     for note in renamed_flags(service_args):
         logging.getLogger("gridslam").warning("%s", note)

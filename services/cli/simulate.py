@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from services.cli.integrate import DECODERS, add_network_flags, grid_options
+from services.cli.integrate import add_network_flags, grid_options
+from services.common.stages import DECODERS
 from services.evaluation.results import format_table
 from services.gridcells.simulation import WalkParams
 

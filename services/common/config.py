@@ -34,17 +34,19 @@ ENV_PREFIX = "GRIDSLAM_"
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
 
-def read_toml(path: Path) -> dict[str, Any]:
-    """Parse a TOML file; a missing or malformed file is a one-line ConfigError naming it."""
+def read_toml(path: str | Path, what: str = "config file", error: type[Exception] = ConfigError) -> dict[str, Any]:
+    """Parse a TOML file (a config, preset or calibration file: ``what``, in messages): the one
+    TOML reader. A missing or malformed file is a one-line ``error`` (ConfigError, or the
+    caller's own kind of it) naming the file."""
     try:
         with open(path, "rb") as handle:
             return tomllib.load(handle)
     except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except OSError as error:
-        raise ConfigError(f"{path}: cannot read config file ({error.strerror})") from None
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: not valid TOML ({error})") from None
+        raise error(f"{path}: {what} not found") from None
+    except OSError as problem:
+        raise error(f"{path}: cannot read {what} ({problem.strerror})") from None
+    except tomllib.TOMLDecodeError as problem:
+        raise error(f"{path}: not valid TOML ({problem})") from None
 
 
 def presets(service: str) -> list[str]:
@@ -100,12 +102,7 @@ def preset_values(service: str, preset: str | Path) -> dict[str, Any]:
     if is_preset_file(preset):
         base, tables = read_preset_file(preset)
         values = preset_values(service, base) if base is not None and has_named_preset(service, base) else {}
-        for key, value in tables.get(service, {}).items():
-            if isinstance(value, dict) and isinstance(values.get(key), dict):
-                values[key] = {**values[key], **value}
-            else:
-                values[key] = value
-        return values
+        return merge_tables(values, tables.get(service, {}))
     if not has_named_preset(service, str(preset)):
         available = ", ".join(presets(service)) or "none"
         raise ConfigError(f"unknown preset {preset!r} for {service} (available: {available})")
@@ -141,6 +138,17 @@ def describe_preset(preset: str | Path, services: list[str]) -> str:
     return f"preset file {preset}: " + "; ".join(parts)
 
 
+def merge_tables(values: dict[str, Any], table: Mapping[str, Any]) -> dict[str, Any]:
+    """``table``'s keys over ``values``, one level deep: a sub-table (``[egomotion.stereo]``)
+    replaces single keys of the one below it, as a preset file's tables do."""
+    for key, value in table.items():
+        if isinstance(value, dict) and isinstance(values.get(key), dict):
+            values[key] = {**values[key], **value}
+        else:
+            values[key] = value
+    return values
+
+
 def env_values(section: str, model: type[BaseModel], environ: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Fields of `model` set through `GRIDSLAM_<SECTION>_<FIELD>` environment variables."""
     environ = os.environ if environ is None else environ
@@ -173,13 +181,13 @@ def load_config(
     sources: list[str] = []
     given: dict[str, str] = {}   # field → the flag or environment variable that gave it
     if preset:
-        values.update(preset_values(section, preset))
+        merge_tables(values, preset_values(section, preset))
         sources.append(f"preset file {preset}" if is_preset_file(preset) else f"preset {preset!r}")
     if config_file is not None:
         table = read_toml(config_file).get(section, {})
         if not isinstance(table, dict):
             raise ConfigError(f"{config_file}: [{section}] must be a table")
-        values.update(table)
+        merge_tables(values, table)
         sources.append(str(config_file))
     from_environment = env_values(section, model, environ)
     values.update(from_environment)
@@ -193,8 +201,9 @@ def load_config(
         first = error.errors()[0]
         where = ".".join(str(part) for part in first["loc"]) or section
         name = str(first["loc"][0]) if first["loc"] else None
+        shown = "input" in first and not isinstance(first["input"], dict) and first.get("type") != "extra_forbidden"
+        got = f", got {first['input']!r}" if shown else ""   # an unknown key's value says nothing
         if name in given:
-            got = f", got {first['input']!r}" if "input" in first and not isinstance(first["input"], dict) else ""
             raise ConfigError(f"{given[name]}: {first['msg']}{got} ([{section}] {name})") from None
         origin = f" (from {', '.join(sources)})" if sources else ""
-        raise ConfigError(f"[{section}] {where}: {first['msg']}{origin}") from None
+        raise ConfigError(f"[{section}] {where}: {first['msg']}{got}{origin}") from None

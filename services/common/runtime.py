@@ -20,6 +20,7 @@ from services.common.errors import ConfigError
 log = logging.getLogger(__name__)
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+SESSION_MODES = ("client", "peer", "router")
 
 
 class RuntimeConfig(BaseModel):
@@ -27,7 +28,7 @@ class RuntimeConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    mode: Literal["client", "peer", "router"] = Field("client", description="Zenoh session mode.")
+    mode: Literal[SESSION_MODES] = Field("client", description="Zenoh session mode.")
     connect: list[str] = Field(
         default_factory=lambda: [DEFAULT_ROUTER], description="Endpoints to connect to, e.g. tcp/127.0.0.1:7447."
     )
@@ -51,7 +52,7 @@ def is_loopback(host: str) -> bool:
 def add_runtime_flags(parser: argparse.ArgumentParser) -> None:
     """The flag set every gridslam process shares."""
     group = parser.add_argument_group("zenoh")
-    group.add_argument("--mode", choices=["client", "peer", "router"], help="session mode (default client)")
+    group.add_argument("--mode", choices=SESSION_MODES, help="session mode (default client)")
     group.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help=f"endpoint to connect to (default {DEFAULT_ROUTER})")
     group.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on")
     group.add_argument("-c", "--config", type=Path, metavar="FILE", help="gridslam TOML config file ([runtime] and per-service tables)")

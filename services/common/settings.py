@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import types
 import typing
+from pathlib import Path
 from typing import Any, Literal
 
 from services.common.errors import ConfigError
@@ -84,12 +86,34 @@ def add_flag(parser, params_type: type, name: str, *, prefix: str = "", flag: st
     and help from the declaration."""
     f, annotation = next((f, a) for f, a in declared(params_type) if f.name == name)
     meta = f.metadata
-    kwargs: dict[str, Any] = {"help": f"{meta.get('help', '')} (default {f.default})"}
+    kwargs: dict[str, Any] = {"help": f"{meta.get('help', '').rstrip('.')} (default {f.default})"}
     if meta.get("choices"):
         kwargs["choices"] = list(meta["choices"])
     elif annotation in (int, float):
         kwargs["type"] = annotation
-    parser.add_argument(flag or "--" + (prefix + name).replace("_", "-"), dest=prefix + name, **{**kwargs, **extra})
+    kwargs["dest"] = prefix + name
+    parser.add_argument(flag or "--" + (prefix + name).replace("_", "-"), **{**kwargs, **extra})
+
+
+def add_field_flag(parser, model, name: str, *, flag: str | None = None, **extra) -> None:
+    """An argparse flag for one field of a pydantic config model (default None: "not given"):
+    its type, choices, help and default from the field; a bool field is a switch that sets it
+    true. For the settings a service declares in its config model rather than a core's dataclass."""
+    field = model.model_fields[name]
+    annotation = field.annotation
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):   # X | None: the X
+        annotation = next(arg for arg in typing.get_args(annotation) if arg is not type(None))
+    default = field.get_default(call_default_factory=True)
+    # None: the description says what happens; a switch is off unless given
+    said = "" if default is None or (annotation is bool and default is False) else f" (default {default})"
+    kwargs: dict[str, Any] = {"dest": name, "help": f"{(field.description or '').rstrip('.')}{said}"}
+    if annotation is bool:
+        kwargs.update(action="store_true", default=None)
+    elif typing.get_origin(annotation) is Literal:
+        kwargs["choices"] = list(typing.get_args(annotation))
+    elif annotation in (int, float, Path):
+        kwargs["type"] = annotation
+    parser.add_argument(flag or "--" + name.replace("_", "-"), **{**kwargs, **extra})
 
 
 class CommandParser(argparse.ArgumentParser):

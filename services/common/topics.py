@@ -66,14 +66,3 @@ def parse_health_key(key_expr: str) -> tuple[str, str, str]:
     if len(parts) != 6 or "/".join(parts[:2]) != PREFIX or parts[3] != "health":
         raise ValueError(f"{key_expr!r} is not a gridslam health key")
     return parts[2], parts[4], parts[5]
-
-
-def topic_of(key_expr: str) -> str | None:
-    """The topic of a gridslam key (status keys give 'status'), or None for a foreign key."""
-    parts = key_expr.split("/")
-    if len(parts) < 4 or "/".join(parts[:2]) != PREFIX:
-        return None
-    topic = "/".join(parts[3:])
-    if topic.startswith("status/"):
-        return "status"
-    return topic if topic in TOPICS else None

@@ -2,22 +2,28 @@
 quality) per camera frame. Pure cores (numpy and OpenCV only).
 
     make_estimator(name, camera, params)   # "scanline", "stereo", "mono", "passthrough"
-    load_estimator_config(preset, config_file) -> (default estimator name, {name: params})
+    egomotion_config(preset, config_file)  # the service's settings (EgomotionConfig), as every service reads its own
+    resolve_estimator(...), resolve_sharding(...)   # from them: the estimator and its parameters, the blocks
+    load_estimator_config(preset, config_file) -> (default estimator name, {name: params})   # gridslam odometry
 
 Presets (services/egomotion/presets/<name>.toml) hold an optional top-level ``estimator``
 (the default estimator for that dataset) and one table of parameters per estimator,
-``[scanline]``, ``[stereo]``, ``[mono]``, ``[passthrough]``; a --config file has the same
-shape and overrides the preset key by key. docs/egomotion.md describes every parameter.
+``[scanline]``, ``[stereo]``, ``[mono]``, ``[passthrough]``: the shape of a config file's
+[egomotion] table. `gridslam odometry --config` takes a file of that shape (or a whole config
+file), over the preset key by key. docs/egomotion.md describes every parameter.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from services.common.geometry import increment_from_transform, transform_from_increment
+from services.common.settings import config_fields
+from services.common.stages import ESTIMATORS as ESTIMATOR_NAMES
 from services.egomotion.base import (
     EgomotionError,
     Estimator,
@@ -68,15 +74,14 @@ def preset_names() -> list[str]:
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """A preset or config TOML file, shape-checked: optional ``estimator`` string and one
-    table per estimator name."""
-    path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            table = tomllib.load(stream)
-    except FileNotFoundError:
-        raise EstimatorConfigError(f"{path}: config file not found") from None
-    except (OSError, tomllib.TOMLDecodeError) as error:
-        raise EstimatorConfigError(f"{path}: not a readable TOML file: {error}") from None
+    table per estimator name; or a whole gridslam config file, whose [egomotion] table has that
+    shape (and the instances' keys, which an offline run has no use for)."""
+    from services.common.config import read_toml
+
+    table = read_toml(path, error=EstimatorConfigError)
+    if isinstance(table.get("egomotion"), dict):
+        table = {key: value for key, value in table["egomotion"].items() if key not in SHARD_SETTINGS}
+        return check_config_table(table, f"{path}: [egomotion]")
     return check_config_table(table, str(path))
 
 
@@ -125,51 +130,59 @@ def load_estimator_config(
     return default, params
 
 
+def egomotion_config(preset: str | Path | None = None, config_file: str | Path | None = None, environ=None,
+                     **flags) -> BaseModel:
+    """The egomotion service's settings (EgomotionConfig): the preset's (a name or a preset file,
+    its estimator and tables) < the config file's [egomotion] table (one sub-table per estimator,
+    key by key over the preset's) < GRIDSLAM_EGOMOTION_<KEY> < ``flags`` (estimator, instances,
+    shard_block; None: not given). The one resolution for the egomotion service and the runner."""
+    from services.common.config import load_config
+
+    return load_config(EgomotionConfig, "egomotion", preset=preset, config_file=Path(config_file) if config_file else None,
+                       environ=environ, overrides=flags)
+
+
 def resolve_estimator(estimator: str | None = None, preset: str | None = None, config_file: str | Path | None = None,
                       camera_height: float | None = None, environ=None) -> tuple[str, dict[str, Any]]:
-    """The estimator a run uses and its parameters: the preset < the config file's [egomotion]
-    table (`estimator = "..."` and one sub-table per estimator) < GRIDSLAM_EGOMOTION_ESTIMATOR <
-    ``estimator``; scanline when none names one. ``camera_height`` (m) sets mono's
-    camera_height_m. The one resolution for the egomotion service and the runner."""
-    import os
-
-    from services.common.config import read_toml
-    from services.common.errors import ConfigError
-
-    environ = os.environ if environ is None else environ
-    default, params = load_estimator_config(preset)
-    table = read_toml(Path(config_file)).get("egomotion", {}) if config_file else {}
-    for name, values in table.items():
-        if name in ESTIMATORS:
-            params[name].update(values)
-        elif name not in ("estimator", *SHARD_SETTINGS):
-            raise ConfigError(f"{config_file}: [egomotion] unknown key {name!r}")
-    if camera_height is not None:
-        params["mono"]["camera_height_m"] = camera_height
-    name = estimator or environ.get("GRIDSLAM_EGOMOTION_ESTIMATOR") or table.get("estimator") or default or "scanline"
-    if name not in ESTIMATORS:
-        raise ConfigError(f"unknown estimator {name!r} (available: {', '.join(ESTIMATORS)})")
-    params_from_dict(ESTIMATORS[name][1], params[name], where=f"{name} parameters")   # fail at start, not at frame 1
-    return name, params[name]
+    """The estimator a run uses and its parameters (egomotion_config): scanline when none names
+    one. ``camera_height`` (m) sets mono's camera_height_m."""
+    config = egomotion_config(preset, config_file, environ, estimator=estimator)
+    name = config.estimator or "scanline"
+    params = dict(getattr(config, name))
+    if camera_height is not None and name == "mono":
+        params["camera_height_m"] = camera_height
+    params_from_dict(ESTIMATORS[name][1], params, where=f"{name} parameters")   # fail at start, not at frame 1
+    return name, params
 
 
 def resolve_sharding(estimator: str, instances: int | None = None, shard_block: int | None = None,
                      config_file: str | Path | None = None, environ=None) -> tuple[ShardParams, int | None]:
     """How this robot's egomotion instances share its frames (shards.ShardParams) and the frames
-    per block they run `estimator` in (None: one instance, frame after frame; shards.block_size):
-    the config file's [egomotion] instances and shard_block < GRIDSLAM_EGOMOTION_INSTANCES and
-    GRIDSLAM_EGOMOTION_SHARD_BLOCK < ``instances`` and ``shard_block`` (flags; None: not given).
-    The one resolution for the egomotion service and the runner."""
-    from pydantic import create_model
+    per block they run `estimator` in (None: one instance, frame after frame; shards.block_size),
+    from egomotion_config (``instances`` and ``shard_block``: the flags; None: not given)."""
+    from services.common.settings import params_of
 
-    from services.common.config import load_config
-    from services.common.settings import config_fields, params_of
-
-    model = create_model("ShardConfig", **config_fields(ShardParams))   # the table's other keys are the estimators'
-    config = load_config(model, "egomotion", config_file=Path(config_file) if config_file else None, environ=environ,
-                         overrides={"instances": instances, "shard_block": shard_block})
+    config = egomotion_config(None, config_file, environ, instances=instances, shard_block=shard_block)
     sharding = params_of(ShardParams, config)
     return sharding, block_size(ESTIMATORS[estimator][0], sharding)
+
+
+class _EgomotionFields(BaseModel):
+    """Configuration of the egomotion service (table `[egomotion]`, env `GRIDSLAM_EGOMOTION_*`,
+    presets): the estimator, one table of parameters per estimator (docs/egomotion.md) and how
+    the instances share the frames (ShardParams)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    estimator: Literal[ESTIMATOR_NAMES] | None = Field(
+        None, description="The ego-motion estimator (default: the preset's, else scanline).")
+
+
+EgomotionConfig = create_model(
+    "EgomotionConfig", __base__=_EgomotionFields, __doc__=_EgomotionFields.__doc__, **config_fields(ShardParams),
+    **{name: (dict[str, Any], Field(default_factory=dict, description=f"The {name} estimator's parameters "
+                                                                       f"({params.__name__})."))
+       for name, (_, params) in ESTIMATORS.items()})
 
 
 __all__ = [
@@ -178,7 +191,9 @@ __all__ = [
     "Estimator",
     "EstimatorConfigError",
     "Increment",
+    "EgomotionConfig",
     "check_config_table",
+    "egomotion_config",
     "increment_from_transform",
     "load_estimator_config",
     "make_estimator",

@@ -28,6 +28,7 @@ from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import add_flag
+from services.common.stages import ESTIMATORS as ESTIMATOR_NAMES
 from services.egomotion import ESTIMATORS, SHARD_SETTINGS, make_estimator, resolve_estimator, resolve_sharding
 from services.egomotion.base import params_from_dict
 from services.egomotion.shards import BlockEstimation, FrameByFrame, FrameHistory, ShardParams, block_owner
@@ -171,7 +172,7 @@ class EgomotionService(Service):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--estimator", choices=["scanline", "stereo", "mono", "passthrough"],
+    parser.add_argument("--estimator", choices=ESTIMATOR_NAMES,
                         help="ego-motion estimator (default: the preset's, else scanline)")
     parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic, campus, "
                                          "or a preset file")

@@ -46,11 +46,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.common.errors import ConfigError
 from services.common.geometry import adjoint, between, compose, inverse
+from services.common.settings import check, setting
+from services.common.stages import CLOSURES, MAP_OPTIMIZERS
 
-OPTIMIZERS = ("gtsam", "ratslam")
-CLOSURES = ("metric", "ratslam")
+OPTIMIZERS = MAP_OPTIMIZERS
 KERNELS = ("cauchy", "geman_mcclure", "dcs", "huber", "none")
 METHODS = ("stereo", "mono", "scanline")
 FATES = ("accepted", "rejected", "unmeasured", "unmatched")   # what becomes of a confirmed closure
@@ -58,50 +58,48 @@ FATES = ("accepted", "rejected", "unmeasured", "unmatched")   # what becomes of 
 
 @dataclass(frozen=True)
 class MapParams:
-    new_experience_distance: float = 1.0   # metres of odometry before a new experience
-    optimizer: str = "gtsam"               # gtsam (pose graph, iSAM2) or ratslam (relaxation)
-    closure: str = "metric"                # metric (measured relative pose) or ratslam (snap to the experience)
+    """The experience map's settings (table `[expmap]`, env `GRIDSLAM_EXPMAP_*`, presets: the
+    expmap service's config model is derived from these declarations)."""
+
+    LABEL = "experience map"
+
+    new_experience_distance: float = setting(1.0, gt=0, help="Metres of odometry before a new experience.")
+    optimizer: str = setting("gtsam", choices=OPTIMIZERS,
+                             help="gtsam: a pose graph solved by iSAM2; ratslam: RatSLAM's graph relaxation.")
+    closure: str = setting("metric", choices=CLOSURES,
+                           help="metric: a closure carries the relative pose measured from the images; ratslam: the "
+                                "robot snaps to the matched experience (the paper's model).")
     # RatSLAM relaxation (optimizer = ratslam)
-    correction: float = 0.5                # RatSLAM's correction factor
-    relax_passes: int = 10                 # relaxation passes per frame after a loop closure
-    relax_every_frame: int = 1             # passes on frames without a loop closure
+    correction: float = setting(0.5, gt=0, le=1, help="Relaxation correction factor (RatSLAM: 0.5; optimizer ratslam).")
+    relax_passes: int = setting(10, ge=0, help="Relaxation passes on a frame with a loop closure (optimizer ratslam).")
+    relax_every_frame: int = setting(1, ge=0, help="Relaxation passes on every other frame (optimizer ratslam).")
     # Pose graph (optimizer = gtsam). The odometry's uncertainty comes with it (each frame's
     # increment covariance, from the ego-motion estimator through the integrator); for a frame
     # without one, its standard deviations are modelled from the frame's motion:
-    odometry_translation_sigma: float = 0.05   # metres per metre travelled in the frame
-    odometry_heading_sigma: float = 0.01       # radians per metre travelled in the frame
-    odometry_turn_sigma: float = 0.05          # radians per radian turned in the frame
-    odometry_translation_floor: float = 0.005  # metres added to every link's standard deviation
-    odometry_heading_floor: float = 0.001      # radians added to every link's standard deviation
+    odometry_translation_sigma: float = setting(
+        0.05, ge=0, help="A frame's odometry without a covariance: translation std dev per metre moved.")
+    odometry_heading_sigma: float = setting(
+        0.01, ge=0, help="A frame's odometry without a covariance: heading std dev per metre moved, rad.")
+    odometry_turn_sigma: float = setting(
+        0.05, ge=0, help="A frame's odometry without a covariance: heading std dev per radian turned.")
+    odometry_translation_floor: float = setting(0.005, gt=0, help="Added to every odometric link's translation std dev, m.")
+    odometry_heading_floor: float = setting(0.001, gt=0, help="Added to every odometric link's heading std dev, rad.")
     # Closures: a snapped closure (closure = ratslam) asserts the robot is at the experience, within these
-    snap_translation_sigma: float = 0.5    # metres
-    snap_heading_sigma: float = 0.2        # radians
-    mono_scale_sigma: float = 0.5          # a monocular closure's translation length: this fraction of the odometry's
-    robust_kernel: str = "cauchy"          # on closure links: cauchy, geman_mcclure, dcs, huber or none
-    kernel_width: float = 1.0              # the kernel's constant, in standard deviations of the closure
-    closure_gate: float = 3.0              # refuse a closure whose residual after solving exceeds this (std devs)
-    closure_iterations: int = 4            # extra solver iterations on a frame with a closure
+    snap_translation_sigma: float = setting(0.5, gt=0, help="closure ratslam: std dev of 'the robot is at the experience', m.")
+    snap_heading_sigma: float = setting(0.2, gt=0, help="closure ratslam: heading std dev of the snap, rad.")
+    mono_scale_sigma: float = setting(0.5, gt=0, help="A monocular closure's length: std dev as a fraction of the odometry's.")
+    robust_kernel: str = setting("cauchy", choices=KERNELS, help="Robust kernel on closure factors (optimizer gtsam).")
+    kernel_width: float = setting(1.0, gt=0, help="The kernel's constant, in standard deviations of the closure.")
+    closure_gate: float = setting(
+        3.0, gt=0, help="Refuse a closure whose innovation exceeds this many standard deviations (optimizer gtsam).")
+    closure_iterations: int = setting(4, ge=0, help="Extra solver iterations on a frame with an accepted closure.")
     # Sessions: closures joining two parts of the map (a later session to the saved map) must agree
-    join_closures: int = 3                 # this many of one frame's closures, on where the part is,
-    join_gate: float = 3.0                 # within this many standard deviations of each other
+    join_closures: int = setting(3, ge=1, help="Closures of one frame that must agree on where a part of the map is "
+                                               "before it is joined to another (a later session to the saved map).")
+    join_gate: float = setting(3.0, gt=0, help="Standard deviations within which those closures must agree.")
 
     def check(self) -> None:
-        rules = (("new_experience_distance", self.new_experience_distance > 0), ("optimizer", self.optimizer in OPTIMIZERS),
-                 ("closure", self.closure in CLOSURES), ("correction", 0 < self.correction <= 1),
-                 ("relax_passes", self.relax_passes >= 0), ("relax_every_frame", self.relax_every_frame >= 0),
-                 ("odometry_translation_sigma", self.odometry_translation_sigma >= 0),
-                 ("odometry_heading_sigma", self.odometry_heading_sigma >= 0),
-                 ("odometry_turn_sigma", self.odometry_turn_sigma >= 0),
-                 ("odometry_translation_floor", self.odometry_translation_floor > 0),
-                 ("odometry_heading_floor", self.odometry_heading_floor > 0),
-                 ("snap_translation_sigma", self.snap_translation_sigma > 0), ("snap_heading_sigma", self.snap_heading_sigma > 0),
-                 ("mono_scale_sigma", self.mono_scale_sigma > 0), ("robust_kernel", self.robust_kernel in KERNELS),
-                 ("kernel_width", self.kernel_width > 0), ("closure_gate", self.closure_gate > 0),
-                 ("closure_iterations", self.closure_iterations >= 0), ("join_closures", self.join_closures >= 1),
-                 ("join_gate", self.join_gate > 0))
-        for name, ok in rules:
-            if not ok:
-                raise ConfigError(f"experience map: invalid {name} = {getattr(self, name)!r}")
+        check(self)
 
 
 # --- links and closures ---------------------------------------------------------------------------
@@ -352,7 +350,7 @@ class ExperienceMap:
                 transform = inverse(transform)
             self._joining.append((frame, transform, link_covariance, moved_part, fixed_part))
         best: list[int] = []
-        for i, (_, transform_i, covariance_i, moved_i, fixed_i) in enumerate(self._joining):
+        for _, transform_i, covariance_i, moved_i, fixed_i in self._joining:
             agreeing = [j for j, (_, transform_j, covariance_j, moved_j, fixed_j) in enumerate(self._joining)
                         if (moved_j, fixed_j) == (moved_i, fixed_i)
                         and _mahalanobis(transform_i, transform_j, covariance_i + covariance_j) <= self.params.join_gate]

@@ -169,7 +169,7 @@ class Localizer:
         now = [(closure, compose(at, between(self.odometry[seen], self.odometry[frame])), covariance)
                for seen, closure, at, covariance in self._candidates]
         best: list[int] = []
-        for i, (_, pose_i, covariance_i) in enumerate(now):
+        for _, pose_i, covariance_i in now:
             agreeing = [j for j, (_, pose_j, covariance_j) in enumerate(now)
                         if _distance(pose_i, pose_j, covariance_i + covariance_j) <= self.params.consistency_gate]
             if len(agreeing) > len(best):
@@ -188,7 +188,7 @@ class Localizer:
         self._candidates.clear()
         self.experience = self.map_frames[chosen[0][0].matched_frame][0]
         used = {id(closure) for closure, _, _ in chosen}
-        for closure, pose, covariance in chosen[1:]:
+        for _, pose, covariance in chosen[1:]:
             self._update(pose, covariance)
         for closure in closures:
             if not any(decided is closure for decided, _, _ in result.decisions):

@@ -20,10 +20,9 @@ import threading
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from schemas import Experience, GridPose, Link, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate, Point, ViewTemplate
 from services.common.config import load_config
@@ -33,6 +32,7 @@ from services.common.journal import SESSION, continue_session
 from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
+from services.common.settings import add_flag, config_fields, params_of
 from services.expmap.graph import MOVED, ClosureInput, ExperienceMap, FrameResult, MapParams, MapState
 from services.expmap.joiner import FrameJoiner
 from services.expmap.route import shortest_route
@@ -50,38 +50,12 @@ class MapInputError(DataError):
     """A grid pose the map cannot take (the message says which value)."""
 
 
-class ExpMapConfig(BaseModel):
+class _ExpMapFields(BaseModel):
     """Configuration of the expmap service (table `[expmap]`, env `GRIDSLAM_EXPMAP_*`, presets).
-    The map's keys are MapParams' (services/expmap/graph.py documents each)."""
+    The map's keys are MapParams' (services/expmap/graph.py declares each)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    new_experience_distance: float = Field(1.0, gt=0, description="Metres of odometry before a new experience.")
-    optimizer: Literal["gtsam", "ratslam"] = Field(
-        "gtsam", description="gtsam: a pose graph solved by iSAM2; ratslam: RatSLAM's graph relaxation.")
-    closure: Literal["metric", "ratslam"] = Field(
-        "metric", description="metric: a closure carries the relative pose measured from the images; ratslam: the robot "
-                              "snaps to the matched experience (the paper's model).")
-    correction: float = Field(0.5, gt=0, le=1, description="Relaxation correction factor (RatSLAM: 0.5; optimizer ratslam).")
-    relax_passes: int = Field(10, ge=0, description="Relaxation passes on a frame with a loop closure (optimizer ratslam).")
-    relax_every_frame: int = Field(1, ge=0, description="Relaxation passes on every other frame (optimizer ratslam).")
-    odometry_translation_sigma: float = Field(
-        0.05, ge=0, description="A frame's odometry without a covariance: translation std dev per metre moved.")
-    odometry_heading_sigma: float = Field(
-        0.01, ge=0, description="A frame's odometry without a covariance: heading std dev per metre moved, rad.")
-    odometry_turn_sigma: float = Field(
-        0.05, ge=0, description="A frame's odometry without a covariance: heading std dev per radian turned.")
-    odometry_translation_floor: float = Field(0.005, gt=0, description="Added to every odometric link's translation std dev, m.")
-    odometry_heading_floor: float = Field(0.001, gt=0, description="Added to every odometric link's heading std dev, rad.")
-    snap_translation_sigma: float = Field(0.5, gt=0, description="closure ratslam: std dev of 'the robot is at the experience', m.")
-    snap_heading_sigma: float = Field(0.2, gt=0, description="closure ratslam: heading std dev of the snap, rad.")
-    mono_scale_sigma: float = Field(0.5, gt=0, description="A monocular closure's length: std dev as a fraction of the odometry's.")
-    robust_kernel: Literal["cauchy", "geman_mcclure", "dcs", "huber", "none"] = Field(
-        "cauchy", description="Robust kernel on closure factors (optimizer gtsam).")
-    kernel_width: float = Field(1.0, gt=0, description="The kernel's constant, in standard deviations of the closure.")
-    closure_gate: float = Field(
-        3.0, gt=0, description="Refuse a closure whose innovation exceeds this many standard deviations (optimizer gtsam).")
-    closure_iterations: int = Field(4, ge=0, description="Extra solver iterations on a frame with an accepted closure.")
     store: Path = Field(Path("experience_map.log"), description="Append-only map log; a restart resumes from it.")
     checkpoint_updates: int = Field(
         500, ge=0, description="Solver updates between checkpoints of the map beside its log (a restart replays only the "
@@ -94,8 +68,11 @@ class ExpMapConfig(BaseModel):
     localize: bool = Field(False, description="With `map`: localise on it only; no experience is stored.")
 
     def params(self) -> MapParams:
-        return MapParams(**self.model_dump(exclude={"store", "out", "checkpoint_updates", "checkpoint_frames", "map",
-                                                    "localize"}))
+        return params_of(MapParams, self)
+
+
+ExpMapConfig = create_model("ExpMapConfig", __base__=_ExpMapFields, __doc__=_ExpMapFields.__doc__,
+                            **config_fields(MapParams))
 
 
 CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "measurement", "forward", "left", "yaw",
@@ -370,11 +347,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_map_arguments(parser: argparse.ArgumentParser) -> None:
     """The map's model, shared by every command that builds a map (run, demo, map build, the service)."""
-    parser.add_argument("--closure", choices=["metric", "ratslam"],
-                        help="what a closure asserts: the measured relative pose (metric, default) or that the robot "
-                             "is at the matched experience (ratslam)")
-    parser.add_argument("--map-optimizer", choices=["gtsam", "ratslam"],
-                        help="what places the experiences: a pose graph (gtsam, default) or RatSLAM's relaxation")
+    add_flag(parser, MapParams, "closure")
+    add_flag(parser, MapParams, "optimizer", flag="--map-optimizer", dest="map_optimizer")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:

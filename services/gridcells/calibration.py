@@ -24,17 +24,18 @@ a change of network parameters, grid or CALIBRATION_VERSION makes a new one.
 from __future__ import annotations
 
 import cmath
+import os
 import hashlib
 import json
 import logging
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from services.common.environment import cache_folder
 from services.gridcells.decoders import decode_subpixel
 from services.gridcells.network import GridCellError, NetworkParams, NetworkStack
 
@@ -342,10 +343,8 @@ class LagInverter:
 
 # --- the disk cache ----------------------------------------------------------------------------
 def cache_dir() -> Path:
-    if os.environ.get("GRIDSLAM_CACHE"):
-        return Path(os.environ["GRIDSLAM_CACHE"])
-    base = Path(os.environ["XDG_CACHE_HOME"]) if os.environ.get("XDG_CACHE_HOME") else Path.home() / ".cache"
-    return base / "gridslam"
+    """The folder of measured flow tables (services/common/environment.py, cache_folder)."""
+    return cache_folder()
 
 
 def cache_key(params: NetworkParams, grid: CalibrationGrid, search: int | None) -> str:

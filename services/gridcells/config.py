@@ -6,7 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
+
+from services.common.settings import config_fields
+from services.common.stages import GridStageParams
 
 
 # Per-frame noise of the direction of travel each decoder reads from the lattice, radians: the rms
@@ -15,21 +18,12 @@ from pydantic import BaseModel, ConfigDict, Field
 DIRECTION_SIGMA = {"paper": 0.1, "fft": 0.11, "subpixel": 0.005, "calibrated": 0.002}
 
 
-class GridCellsConfig(BaseModel):
+class _GridCellsFields(BaseModel):
+    """Configuration of the gridcells service (table `[gridcells]`, env `GRIDSLAM_GRIDCELLS_*`,
+    presets): the stage's choices are GridStageParams' (services/common/stages.py)."""
+
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    integrator: Literal["grid", "deadreckoning"] = Field(
-        "grid", description="grid: the periodic attractor network; deadreckoning: plain integration of the increments (baseline).")
-    decoder: Literal["paper", "fft", "subpixel", "calibrated"] = Field(
-        "calibrated", description="How the lattice flow is read between frames; calibrated: subpixel's shift through the inverse of "
-                                "the flow measured once per parameter set (cached on disk).")
-    step: Literal["odometry", "lattice"] = Field(
-        "odometry", description="Where the step length comes from: the ego-motion (paper eq. 5) or the calibrated lattice flow "
-                                "(needs decoder = calibrated).")
-    modules: int = Field(1, ge=1, le=4, description="Grid modules of different spacings (ratio ~1.4), run batched and combined "
-                                                    "by precision (more than 1 needs decoder = calibrated).")
-    heading: Literal["sum", "ring"] = Field(
-        "sum", description="Heading model: sum (integrated yaw, the paper's) or ring (a head-direction ring attractor).")
     velocity_scale: float | Literal["auto"] = Field(
         "auto", description="Network input units per metre; auto derives it from typical_speed.")
     typical_speed: float = Field(
@@ -49,3 +43,7 @@ class GridCellsConfig(BaseModel):
     def direction_noise(self) -> float:
         """direction_sigma, or the decoder's measured noise when it is not set."""
         return DIRECTION_SIGMA[self.decoder] if self.direction_sigma is None else self.direction_sigma
+
+
+GridCellsConfig = create_model("GridCellsConfig", __base__=_GridCellsFields, __doc__=_GridCellsFields.__doc__,
+                               **config_fields(GridStageParams))

@@ -23,6 +23,8 @@ import numpy as np
 
 from services.common.odometry import DeadReckoning, GridStep, PathIntegrator, Pose2D, body_to_world, turn_first
 from services.gridcells.calibration import CalibrationGrid, FlowTable, LagInverter, flow_table
+from services.common import stages
+from services.common.stages import HEADING_MODELS, STEP_SOURCES
 from services.gridcells.decoders import DECODERS, SubpixelReader
 from services.gridcells.heading import RingHeading
 from services.gridcells.network import GridCellError, GridNetwork, NetworkParams, NetworkStack
@@ -58,9 +60,7 @@ LINEAR_LIMIT = 0.3
 TARGET_SHIFT = 3.0
 
 
-DECODER_NAMES = (*DECODERS, "calibrated")
-STEP_SOURCES = ("odometry", "lattice")
-HEADING_MODELS = ("sum", "ring")
+DECODER_NAMES = stages.DECODERS   # the decoders of decoders.py and calibrated (calibration.py)
 # Grid modules differ in their velocity gain: module k has α·MODULE_RATIO^e for e in
 # MODULE_EXPONENTS[:N]. The network's lattice period is the same (~25 neurons), so its period
 # in the world, the grid spacing, is divided by the gain (Burak & Fiete 2009): neighbouring

@@ -33,12 +33,12 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-import os
 from dataclasses import dataclass, fields
 
 import numpy as np
 import scipy.fft
 
+from services.common.environment import process_setting
 from services.common.errors import ConfigError, DataError
 
 log = logging.getLogger(__name__)
@@ -287,10 +287,9 @@ FFT_BACKENDS = ("fftw", "scipy")
 def fft_backend() -> str:
     """The FFT library the fast network uses: pyFFTW (FFTW 3, about twice scipy.fft's speed on
     the 64×64 sub-lattices) when it is installed (`pip install gridslam[fftw]`), scipy.fft
-    otherwise; GRIDSLAM_FFT=scipy forces scipy.fft."""
-    choice = os.environ.get("GRIDSLAM_FFT", "").strip().lower()
-    if choice and choice not in FFT_BACKENDS:
-        raise ConfigError(f"GRIDSLAM_FFT={choice!r}: choose one of {', '.join(FFT_BACKENDS)}")
+    otherwise; the process's `fft` setting (GRIDSLAM_FFT=fftw|scipy, services/common/environment.py)
+    forces one."""
+    choice = process_setting("fft")
     if choice == "scipy":
         return "scipy"
     try:

@@ -18,7 +18,8 @@ from services.common.errors import DataError, PersistenceError
 from services.common.convert import image_to_msg, planar_pose
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.settings import add_renamed_flag
+from services.common.settings import add_flag, add_renamed_flag
+from services.common.stages import STEP_SOURCES, GridStageParams
 from services.gridcells.config import GridCellsConfig
 from services.gridcells.integrator import DeadReckoning, GridCellIntegrator, auto_velocity_scale, turn_first
 from services.gridcells.network import GridCellError, NetworkParams
@@ -148,13 +149,12 @@ class GridCellsService(Service):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--integrator", choices=["grid", "deadreckoning"], help="path integrator (default grid)")
-    parser.add_argument("--decoder", choices=["paper", "fft", "subpixel", "calibrated"], help="lattice flow decoder (default calibrated)")
-    parser.add_argument("--step-source", dest="step", choices=["odometry", "lattice"],
-                        help="step length from the ego-motion (odometry, default) or the calibrated lattice flow (lattice)")
-    add_renamed_flag(parser, "--step", "--step-source", dest="step", choices=["odometry", "lattice"])
-    parser.add_argument("--modules", type=int, help="grid modules (default 1; more need --decoder calibrated)")
-    parser.add_argument("--heading", choices=["sum", "ring"], help="heading model: summed yaw (default) or a ring attractor")
+    for name in ("integrator", "decoder"):
+        add_flag(parser, GridStageParams, name)
+    add_flag(parser, GridStageParams, "step", flag="--step-source")
+    add_renamed_flag(parser, "--step", "--step-source", dest="step", choices=STEP_SOURCES)
+    add_flag(parser, GridStageParams, "modules", metavar="N")
+    add_flag(parser, GridStageParams, "heading")
     parser.add_argument("--velocity-scale", help="network units per metre, or auto (default)")
     parser.add_argument("--preset", help="dataset preset (services/gridcells/presets/)")
     parser.add_argument("--checkpoint", type=Path, help="state file written every frame; a restart resumes from it")

@@ -78,7 +78,6 @@ class InvertedIndex:
         self._places: list[np.ndarray | None] = [None] * words
         self._weights: list[np.ndarray | None] = [None] * words
         self._counts = np.zeros(words, np.int64)
-        self.postings = 0
 
     def add(self, place: int, bag: BagVector) -> None:
         for word, weight in zip(bag.words.tolist(), bag.weights.tolist()):
@@ -93,7 +92,6 @@ class InvertedIndex:
             self._places[word][n] = place
             self._weights[word][n] = weight
             self._counts[word] = n + 1
-        self.postings += len(bag.words)
 
     def scores(self, bag: BagVector, places: int, max_postings: int | None = None) -> np.ndarray:
         """The L1 score of every place against ``bag`` (0 for a place sharing no word), from at

@@ -20,18 +20,20 @@ from collections import deque
 from dataclasses import dataclass
 
 from services.common.errors import ConfigError
+from services.common.settings import setting
 
 
 @dataclass(frozen=True)
 class ConsistencyParams:
-    window: int = 10            # consecutive frames considered (the paper's ten)
-    min_votes: int = 7          # possible closures needed within the window ("more than six")
-    # Frames by which a vote's frame offset may differ: a template spans several frames, and a
-    # robot that stops at a revisited place votes for one place while its frames advance (seven
-    # votes in a row then span offsets six frames apart: min_votes − 1).
-    tolerance: int = 6
-    recent_frames: int = 30     # a template stored fewer frames ago than this is not a loop closure
-    confirm_run: bool = True    # a confirmed run confirms its earlier votes too (else only the newest)
+    window: int = setting(10, ge=1, help="Consecutive frames of the consistency rule (the paper's ten).")
+    min_votes: int = setting(7, ge=1, help="Consistent possible closures needed in the window (paper: more than six).")
+    # A template spans several frames, and a robot that stops at a revisited place votes for one
+    # place while its frames advance (seven votes in a row then span offsets six frames apart).
+    tolerance: int = setting(6, ge=0, help="Frames by which the votes' frame offsets may disagree (min_votes − 1: "
+                                           "a robot that stops at a revisited place).")
+    recent_frames: int = setting(30, ge=1, help="Templates stored fewer frames ago are not loop closures.")
+    confirm_run: bool = setting(True, help="A confirmed run of votes confirms the closures of its earlier frames too "
+                                           "(false: only the newest frame's, as RatSLAM).")
 
     def check(self) -> None:
         for name, ok in (("window", self.window >= 1), ("min_votes", 1 <= self.min_votes <= self.window),
@@ -97,10 +99,6 @@ class ConsistencyRule:
             if length > longest:
                 best, longest = (template, matched), length
         return best
-
-    def consistent_votes(self) -> int:
-        """The length of the run ending at the window's newest vote (`run_to`)."""
-        return len(self.run_to(self.possible[-1]))
 
     def run_to(self, newest: Vote) -> list[Vote]:
         """The longest run of votes that agree with ``newest`` and ends at it, oldest first: frame

@@ -47,10 +47,11 @@ import cv2
 import numpy as np
 
 from services.common.errors import ConfigError, DataError
-from services.common.geometry import increment_from_transform, invert_transform, transform_from_rt
-from services.common.images import grey
 from services.common.features import TrackParams, track
 from services.common.frames import Camera
+from services.common.geometry import increment_from_transform, invert_transform, transform_from_rt
+from services.common.images import grey
+from services.common.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -64,38 +65,40 @@ class GeometryParams:
     """Parameters of keyframes and closure geometry; the defaults suit a user's own camera at
     320×240 to 1280×720 (nothing in them is tuned to one dataset)."""
 
-    features: int = 200              # features kept per keyframe (each costs 38 bytes stored)
-    query_features: int = 500        # features detected in the current image of a closure
-    grid: tuple[int, int] = (8, 6)   # columns, rows of the cells over which features are spread
-    pyramid_levels: int = 4          # ORB scales (1.2 apart: 1.7× of scale change across them)
-    fast_threshold: int = 20         # ORB's FAST threshold, grey levels (ORB's default)
-    ratio: float = 0.8               # Lowe's ratio test on Hamming distances
-    max_distance: int = 80           # largest Hamming distance of a match (of 256 bits)
+    features: int = setting(200, help="features kept per keyframe (each costs 38 bytes stored)")
+    query_features: int = setting(500, help="features detected in the current image of a closure")
+    grid: tuple[int, int] = setting((8, 6), help="columns, rows of the cells over which features are spread")
+    pyramid_levels: int = setting(4, help="ORB scales (1.2 apart: 1.7× of scale change across them)")
+    fast_threshold: int = setting(20, help="ORB's FAST threshold, grey levels (ORB's default)")
+    ratio: float = setting(0.8, help="Lowe's ratio test on Hamming distances")
+    max_distance: int = setting(80, help="largest Hamming distance of a match (of 256 bits)")
     # Stereo keyframes: left–right matching along the row (services/egomotion/stereo.py).
-    stereo_window_px: int = 11
-    stereo_pyramid_levels: int = 4
-    stereo_candidates: int = 300     # keypoints tried in the right image (the first `features` found are kept)
-    stereo_forward_backward_px: float = 0.0   # 0: no backward check (the row check rejects most bad matches)
-    max_row_error_px: float = 1.0
-    min_disparity_px: float = 0.5
+    stereo_window_px: int = setting(11, help="stereo keyframes: Lucas–Kanade window of the left–right match, px")
+    stereo_pyramid_levels: int = setting(4, help="stereo keyframes: pyramid levels of the left–right match")
+    stereo_candidates: int = setting(300, help="keypoints tried in the right image (the first `features` found are kept)")
+    stereo_forward_backward_px: float = setting(
+        0.0, help="backward check of the left–right match, px (0: none; the row check rejects most bad matches)")
+    max_row_error_px: float = setting(1.0, help="stereo keyframes: largest row difference of a left–right match, px")
+    min_disparity_px: float = setting(0.5, help="stereo keyframes: smallest disparity, px")
     # Pose: stereo RANSAC (reprojection error), mono inlier threshold (Sampson error), support.
-    ransac_px: float = 3.0
-    ransac_iterations: int = 500
-    mono_threshold_px: float = 1.5
-    min_inliers: int = 20
-    min_inlier_ratio: float = 0.3    # inliers / matches
-    min_parallax_px: float = 1.0     # mono: below it the direction of the translation is unknown
+    ransac_px: float = setting(3.0, help="stereo PnP RANSAC: reprojection error of an inlier, px")
+    ransac_iterations: int = setting(500, help="stereo PnP RANSAC iterations")
+    mono_threshold_px: float = setting(1.5, help="mono: Sampson error of an inlier, px")
+    min_inliers: int = setting(20, help="inliers a relative pose needs")
+    min_inlier_ratio: float = setting(0.3, help="inliers / matches a relative pose needs")
+    min_parallax_px: float = setting(1.0, help="mono: below it the direction of the translation is unknown, px")
     # Plausibility: a closure is between two views of one place.
-    max_translation_m: float = 5.0
-    max_yaw_deg: float = 60.0
-    max_tilt_deg: float = 10.0       # pitch and roll between the views
-    max_height_m: float = 0.5        # stereo: change of the camera's height
+    max_translation_m: float = setting(5.0, help="plausibility: largest translation between the views, m")
+    max_yaw_deg: float = setting(60.0, help="plausibility: largest yaw between the views, degrees")
+    max_tilt_deg: float = setting(10.0, help="plausibility: largest pitch and roll between the views, degrees")
+    max_height_m: float = setting(0.5, help="plausibility, stereo: largest change of the camera's height, m")
     # Error model (stereo) and covariance floors (added to the diagonal).
-    pixel_sigma: float = 0.7         # feature position noise, pixels
-    disparity_sigma: float = 0.2     # stereo disparity noise, pixels
-    floor_translation_m: float = 0.005
-    floor_yaw_deg: float = 0.1
-    floor_direction_deg: float = 1.0  # mono
+    pixel_sigma: float = setting(0.7, help="stereo error model: feature position noise, px (only its ratio to "
+                                           "disparity_sigma matters)")
+    disparity_sigma: float = setting(0.2, help="stereo error model: disparity noise, px")
+    floor_translation_m: float = setting(0.005, help="covariance floor of the translation, m")
+    floor_yaw_deg: float = setting(0.1, help="covariance floor of the yaw, degrees")
+    floor_direction_deg: float = setting(1.0, help="mono: covariance floor of the translation's direction, degrees")
 
     def check(self) -> None:
         """Raise ConfigError naming the first invalid parameter."""

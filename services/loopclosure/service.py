@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from schemas import CameraFrame, LoopClosure, PlanarIncrement, ViewTemplate
 from services.common.config import load_config
@@ -21,7 +21,8 @@ from services.common.journal import SESSION, Journal, continue_session
 from services.common.layout import add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
-from services.common.settings import config_fields, params_of
+from services.common.settings import add_field_flag, config_fields, params_of
+from services.common.stages import CLOSURES
 from services.loopclosure.bow import BowParams
 from services.loopclosure.consistency import ConsistencyParams
 from services.loopclosure.detector import Confirmed, LoopClosureDetector, MeasuredVote, Measurement
@@ -35,6 +36,10 @@ from services.common.frames import Camera
 log = logging.getLogger(__name__)
 
 
+GEOMETRY_PREFIX = "geometry_"   # the closure geometry's keys (GeometryParams): geometry_features, geometry_ratio, ...
+GEOMETRY_KEYS = tuple(field.name for field in dataclasses.fields(GeometryParams))
+
+
 class _LoopClosureFields(BaseModel):
     """Configuration of the loopclosure service (table `[loopclosure]`, env `GRIDSLAM_LOOPCLOSURE_*`, presets)."""
 
@@ -43,25 +48,7 @@ class _LoopClosureFields(BaseModel):
     place_recognition: Literal[PLACE_RECOGNITIONS] = Field(
         DEFAULT_PLACE_RECOGNITION, description="How a frame's place is recognised: scanline (RatSLAM's view templates, the paper's model), "
                            "bow (a bag of binary words, verified geometrically) or sequence (SeqSLAM).")
-    crop: tuple[float, float, float, float] = Field((0.0, 1.0, 0.0, 1.0), description="Crop x0, x1, y0, y1 as fractions of the image.")
-    width: int = Field(60, ge=4, description="Template columns.")
-    height: int = Field(10, ge=1, description="Template rows.")
-    normalisation: float = Field(0.4, ge=0, description="Mean intensity each template is scaled to (0: none).")
-    shift_range: int = Field(5, ge=0, description="Column shifts tried in each direction.")
-    match_threshold: float = Field(0.085, gt=0, description="Distance below which a view matches a stored template.")
-    fov_deg: float = Field(53.0, gt=0, le=360, description="Horizontal field of view of the image, degrees.")
-    matcher: Literal["index", "exhaustive"] = Field(
-        "index", description="index: candidates from a nearest-neighbour index, verified exactly; exhaustive: every template.")
-    candidates: int = Field(16, ge=1, description="Nearest templates per shift taken from the index, then compared exactly.")
-    index_rows: int = Field(3, ge=1, description="Row bands of the index's template descriptor.")
-    window: int = Field(10, ge=1, description="Consecutive frames of the consistency rule.")
-    min_votes: int = Field(7, ge=1, description="Consistent possible closures needed in the window (paper: more than six).")
-    tolerance: int = Field(6, ge=0, description="Frames by which the votes' frame offsets may disagree (min_votes − 1: "
-                                                "a robot that stops at a revisited place).")
-    recent_frames: int = Field(30, ge=1, description="Templates stored fewer frames ago are not loop closures.")
-    confirm_run: bool = Field(True, description="A confirmed run of votes confirms the closures of its earlier frames "
-                                                "too (false: only the newest frame's, as RatSLAM).")
-    closure: Literal["metric", "ratslam"] = Field(
+    closure: Literal[CLOSURES] = Field(
         "metric", description="metric: measure each closure's relative pose; ratslam: no measurement (the map snaps).")
     geometry: Literal["auto", "scanline"] = Field(
         "auto", description="auto: the relative pose from the images (stereo PnP, or mono essential matrix); scanline: "
@@ -69,8 +56,6 @@ class _LoopClosureFields(BaseModel):
     scanline_translation_sigma: float = Field(
         0.5, gt=0, description="scanline measurement: how far from the matched place the robot may be, m (std dev).")
     scanline_heading_sigma: float = Field(0.05, gt=0, description="scanline measurement: std dev of its relative angle, rad.")
-    geometry_params: dict[str, Any] = Field(
-        default_factory=dict, description="Keyframe and closure-geometry parameters (GeometryParams, docs/closure_geometry.md).")
     keyframe_store_mb: float = Field(512.0, gt=0, description="Largest size of the keyframe file beside the journal, MiB.")
     map: Path | None = Field(
         None, description="A results folder whose map to start from (its places and keyframes, read only): this run is "
@@ -81,9 +66,7 @@ class _LoopClosureFields(BaseModel):
                           "Keyframes go beside it (same name, suffix .keyframes).")
 
     def template_params(self) -> TemplateParams:
-        return TemplateParams(crop=self.crop, width=self.width, height=self.height, normalisation=self.normalisation,
-                              shift_range=self.shift_range, match_threshold=self.match_threshold, fov_deg=self.fov_deg,
-                              matcher=self.matcher, candidates=self.candidates, index_rows=self.index_rows)
+        return params_of(TemplateParams, self)
 
     def place_params(self):
         """The chosen place recogniser's parameters."""
@@ -95,17 +78,42 @@ class _LoopClosureFields(BaseModel):
         return params
 
     def consistency_params(self) -> ConsistencyParams:
-        return ConsistencyParams(window=self.window, min_votes=self.min_votes, tolerance=self.tolerance,
-                                 recent_frames=self.recent_frames, confirm_run=self.confirm_run)
+        return params_of(ConsistencyParams, self)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _geometry_table(cls, values: Any) -> Any:
+        """The closure geometry's keys given as one table, `geometry_params = {features = 300}`
+        (the older spelling of `geometry_features = 300`): still read, and noted."""
+        if not isinstance(values, dict) or "geometry_params" not in values:
+            return values
+        values = dict(values)
+        table = values.pop("geometry_params")
+        if not isinstance(table, dict):
+            raise ConfigError(f"[loopclosure] geometry_params must be a table, got {table!r}")
+        unknown = sorted(set(table) - set(GEOMETRY_KEYS))
+        if unknown:
+            raise ConfigError(f"[loopclosure] geometry_params: unknown key(s) {', '.join(unknown)}; known: "
+                              f"{', '.join(sorted(GEOMETRY_KEYS))}")
+        if table:
+            log.warning("[loopclosure] geometry_params is now spelled as single keys (%s); the old spelling still "
+                        "works but will go", ", ".join(f"{GEOMETRY_PREFIX}{key}" for key in table))
+        for key, value in table.items():
+            values.setdefault(GEOMETRY_PREFIX + key, value)
+        return values
 
     def geometry_parameters(self) -> GeometryParams:
-        known = {field.name for field in dataclasses.fields(GeometryParams)}
-        unknown = sorted(set(self.geometry_params) - known)
-        if unknown:
-            raise ConfigError(f"[loopclosure] geometry_params: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in self.geometry_params.items()}
-        params = GeometryParams(**values)
+        params = params_of(GeometryParams, self, GEOMETRY_PREFIX)
         params.check()
+        return params
+
+    def journal_params(self) -> dict[str, Any]:
+        """The settings a journal is made with (its header), in the shape journals have always had
+        them: the closure geometry's as the table `geometry_params` of the keys given."""
+        geometry = {GEOMETRY_PREFIX + key for key in GEOMETRY_KEYS}
+        params = self.model_dump(mode="json", exclude={"store", "keyframe_store_mb", "map", "localize", *geometry})
+        given = self.model_dump(mode="json", include=geometry & self.model_fields_set)
+        params["geometry_params"] = {key.removeprefix(GEOMETRY_PREFIX): value for key, value in given.items()}
         return params
 
     def detector(self, keyframes=None) -> LoopClosureDetector:
@@ -116,7 +124,9 @@ class _LoopClosureFields(BaseModel):
 
 
 LoopClosureConfig = create_model("LoopClosureConfig", __base__=_LoopClosureFields, __doc__=_LoopClosureFields.__doc__,
-                                 **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"))
+                                 **config_fields(TemplateParams), **config_fields(ConsistencyParams),
+                                 **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"),
+                                 **config_fields(GeometryParams, GEOMETRY_PREFIX))
 
 
 def camera_of(message: CameraFrame, image: np.ndarray) -> Camera | None:
@@ -156,7 +166,7 @@ class LoopClosureService(Service):
         self.base = 0                        # the first frame number of this session
         self.journal = None
         if config.store is not None:
-            params = config.model_dump(mode="json", exclude={"store", "keyframe_store_mb", "map", "localize"})
+            params = config.journal_params()
             vocabulary = getattr(self.detector.places, "vocabulary_id", None)
             header = {"format": JOURNAL_FORMAT, "version": JOURNAL_VERSION, "params": params,
                       **({"vocabulary": vocabulary} if vocabulary else {})}
@@ -264,10 +274,9 @@ def add_place_recognition_argument(parser: argparse.ArgumentParser) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", help="view-template parameters for a dataset: synthetic, nubot, kitti, stlucia")
-    parser.add_argument("--match-threshold", type=float, help="template match distance threshold")
-    parser.add_argument("--store", type=Path, help="journal of templates; a restart resumes from it")
-    parser.add_argument("--closure", choices=["metric", "ratslam"],
-                        help="measure each closure's relative pose (metric, default) or not (ratslam: the map snaps)")
+    add_field_flag(parser, LoopClosureConfig, "match_threshold", metavar="D")
+    add_field_flag(parser, LoopClosureConfig, "store", metavar="FILE")
+    add_field_flag(parser, LoopClosureConfig, "closure")
     add_place_recognition_argument(parser)
     add_map_reuse_arguments(parser)
 

@@ -30,6 +30,7 @@ import hnswlib
 import numpy as np
 
 from services.common.errors import ConfigError, DataError
+from services.common.settings import setting
 
 
 MATCHERS = ("index", "exhaustive")
@@ -48,16 +49,17 @@ class TemplateError(DataError):
 
 @dataclass(frozen=True)
 class TemplateParams:
-    crop: tuple[float, float, float, float] = (0.0, 1.0, 0.0, 1.0)   # x0, x1, y0, y1 as fractions of the image
-    width: int = 60                  # template columns
-    height: int = 10                 # template rows
-    normalisation: float = 0.4       # scale each template to this mean intensity (0: no scaling)
-    shift_range: int = 5             # compare at column shifts within ±shift_range
-    match_threshold: float = 0.085   # a view within this distance of a template matches it
-    fov_deg: float = 53.0            # horizontal field of view of the whole image, for relative angles
-    matcher: str = "index"           # "index" (nearest-neighbour candidates) or "exhaustive" (every template)
-    candidates: int = 16             # nearest templates per shift taken from the index, then compared exactly
-    index_rows: int = 3              # row bands of the index descriptor
+    crop: tuple[float, float, float, float] = setting((0.0, 1.0, 0.0, 1.0), help="Crop x0, x1, y0, y1 as fractions of the image.")
+    width: int = setting(60, ge=4, help="Template columns.")
+    height: int = setting(10, ge=1, help="Template rows.")
+    normalisation: float = setting(0.4, ge=0, help="Mean intensity each template is scaled to (0: none).")
+    shift_range: int = setting(5, ge=0, help="Column shifts tried in each direction.")
+    match_threshold: float = setting(0.085, gt=0, help="Distance below which a view matches a stored template.")
+    fov_deg: float = setting(53.0, gt=0, le=360, help="Horizontal field of view of the image, degrees (for relative angles).")
+    matcher: str = setting("index", choices=MATCHERS, help="index: candidates from a nearest-neighbour index, verified "
+                                                            "exactly; exhaustive: every template.")
+    candidates: int = setting(16, ge=1, help="Nearest templates per shift taken from the index, then compared exactly.")
+    index_rows: int = setting(3, ge=1, help="Row bands of the index's template descriptor.")
 
     def check(self) -> None:
         x0, x1, y0, y1 = self.crop

@@ -117,13 +117,6 @@ class Recorder:
         with self.lock:
             self._last_status[(status.service, status.instance)] = status
 
-    def map_snapshot(self):
-        """The expmap service's whole map (MapSnapshot), or None when nobody answers."""
-        for reply in self.session.get(topics.key(self.runtime.robot, "map/snapshot"), timeout=5):
-            if reply.ok is not None:
-                return codec.decode(reply.ok.payload.to_bytes(), encoding=str(reply.ok.encoding))
-        return None
-
     def _on_sample(self, topic: str, sample: zenoh.Sample) -> None:
         arrival = time.monotonic()
         try:

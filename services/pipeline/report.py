@@ -4,13 +4,15 @@ per stage against the ground truth, and the plots (issue 6, "Results folder").""
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import math
 from pathlib import Path
 
 import numpy as np
 
-from services.common.layout import session_of
+from services.common.errors import DataError
+from services.common.layout import METRICS, session_of
 from services.evaluation import metrics, plots
 from services.evaluation.results import write_json, write_trajectory_files
 from services.evaluation.revisits import TRUE_CLOSURE_M, same_place
@@ -20,9 +22,10 @@ from services.pipeline.recorder import Recording
 log = logging.getLogger(__name__)
 
 RPE_DISTANCES_M = (1.0, 10.0, 100.0)
-# Stage → the topic whose arrival times give its latency. `map_online` is the pose expmap published
-# at each frame; `map` is every frame placed on the final, relaxed map (from the map's journal).
-STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map_online": "map/pose", "map": "map/pose"}
+# Stage → the topic whose arrival times give its latency and throughput. `map_online` is the pose
+# expmap published at each frame; `map` is every frame placed on the final, relaxed map, rebuilt
+# from the map's journal once the run is over: no topic, so no latency or throughput of its own.
+STAGE_TOPICS = {"egomotion": "egomotion", "gridcells": "grid/pose", "map_online": "map/pose", "map": None}
 
 
 def percentiles(values) -> dict[str, float | None]:
@@ -85,16 +88,15 @@ def evaluate(recording: Recording, statuses: dict[str, dict], restarts: dict[str
         if name not in trajs:
             continue
         seqs = _seqs(recording, name)
-        arrivals = recording.arrivals[topic]
-        frame_arrivals = recording.arrivals["camera/frame"]
-        latencies_ms = [1e3 * (arrivals[s] - frame_arrivals[s]) for s in seqs if s in frame_arrivals and s in arrivals]
-        times = sorted(arrivals.values())
-        stage = {
-            "frames": len(seqs),
-            "missing_frames": len(set(sent) - set(seqs)),
-            "latency_ms": percentiles(latencies_ms),
-            "throughput_fps": (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 and times[-1] > times[0] else None,
-        }
+        stage = {"frames": len(seqs), "missing_frames": len(set(sent) - set(seqs))}
+        if topic is not None:
+            arrivals = recording.arrivals[topic]
+            frame_arrivals = recording.arrivals["camera/frame"]
+            latencies_ms = [1e3 * (arrivals[s] - frame_arrivals[s]) for s in seqs if s in frame_arrivals and s in arrivals]
+            times = sorted(arrivals.values())
+            stage["latency_ms"] = percentiles(latencies_ms)
+            stage["throughput_fps"] = ((len(times) - 1) / (times[-1] - times[0])
+                                       if len(times) > 1 and times[-1] > times[0] else None)
         if reference is not None:
             common = sorted(set(seqs) & set(_seqs(recording, "groundtruth")))
             if len(common) >= 3:
@@ -188,7 +190,7 @@ def write_report(folder: Path, recording: Recording, result: dict, trajs: dict[s
     written: list[Path] = []
     for name, traj in trajs.items():
         written.extend(write_trajectory_files(folder, name, traj))
-    written.append(write_json(folder / "metrics.json", result))
+    written.append(write_json(folder / METRICS, result))
     if trajs:
         written.append(plots.plot_trajectories(folder / "trajectories.png", trajs, title="Trajectories of every stage"))
     reference = trajs.get("groundtruth")
@@ -259,17 +261,34 @@ def summary_rows(result: dict) -> list[tuple[str, object, str]]:
         rows.append(("closures accepted: true / false", f"{closures['accepted_true']} / {closures['accepted_false']}",
                      f"false: frames > {TRUE_CLOSURE_M:g} m apart"))
         rows.append(("closures rejected: true / false", f"{closures['rejected_true']} / {closures['rejected_false']}", ""))
-    for name, stage in result["stages"].items():
+    stages = result["stages"]
+    for name in sorted(stages, key=list(STAGE_TOPICS).index):   # pipeline order (metrics.json sorts them by name)
+        stage = stages[name]
         rows.append((f"{name}: frames", stage["frames"], "frames"))
         if "ate_se2" in stage:
             rows.append((f"{name}: ATE RMSE (SE(2))", stage["ate_se2"]["rmse"], "m"))
             rows.append((f"{name}: ATE RMSE (Sim(3))", stage["ate_sim3"]["rmse"], "m"))
             rows.append((f"{name}: endpoint error", stage["endpoint"]["percent_of_path"], "% of path"))
-        rows.append((f"{name}: latency p50 from frame", stage["latency_ms"]["p50"], "ms"))
-        rows.append((f"{name}: latency p99 from frame", stage["latency_ms"]["p99"], "ms"))
-        rows.append((f"{name}: throughput", stage["throughput_fps"], "frames/s"))
+        if "latency_ms" in stage:   # (not the final map: it is rebuilt after the run)
+            rows.append((f"{name}: latency p50 from frame", stage["latency_ms"]["p50"], "ms"))
+            rows.append((f"{name}: latency p99 from frame", stage["latency_ms"]["p99"], "ms"))
+            rows.append((f"{name}: throughput", stage["throughput_fps"], "frames/s"))
     for name, service in result["services"].items():
         for counter in ("decode_errors", "gaps", "restarts"):
             if service.get(counter):
                 rows.append((f"{name}: {counter.replace('_', ' ')}", service[counter], ""))
     return rows
+
+
+def read_metrics(folder: Path) -> dict:
+    """A results folder's metrics.json."""
+    path = Path(folder) / METRICS
+    if not path.is_file():
+        raise DataError(f"{path}: not found (a results folder of `gridslam run` or `demo` holds it)")
+    try:
+        result = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise DataError(f"{path}: not readable JSON ({error})") from None
+    if not isinstance(result, dict) or not {"summary", "stages", "services"} <= result.keys():
+        raise DataError(f"{path}: not a run's metrics (summary, stages and services expected)")
+    return result

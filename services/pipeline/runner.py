@@ -32,6 +32,7 @@ from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_
                                      session_base)
 from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
 from services.common.settings import config_fields
+from services.common.stages import CLOSURES, ESTIMATORS, INTEGRATORS, MAP_OPTIMIZERS, GridStageParams
 from services.egomotion import resolve_estimator, resolve_sharding
 from services.evaluation.results import results_dir, write_config
 from services.evaluation.trajectory import read_tum
@@ -76,14 +77,8 @@ class _RunFields(BaseModel):
 
     source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
                                     "rosbag:PATH, ros2:TOPIC.")
-    egomotion: Literal["scanline", "stereo", "mono", "passthrough"] | None = Field(
-        None, description="Ego-motion estimator (default: the preset's).")
-    integrator: Literal["grid", "deadreckoning"] = Field("grid", description="Path integrator.")
-    decoder: Literal["paper", "fft", "subpixel", "calibrated"] | None = Field(None, description="Lattice flow decoder (default calibrated).")
-    step_source: Literal["odometry", "lattice"] | None = Field(
-        None, description="Grid-cell step length from the ego-motion (default) or the calibrated lattice flow.")
-    modules: int | None = Field(None, ge=1, le=4, description="Grid modules (default 1).")
-    heading: Literal["sum", "ring"] | None = Field(None, description="Heading model: summed yaw (default) or a ring attractor.")
+    egomotion: Literal[ESTIMATORS] | None = Field(None, description="Ego-motion estimator (default: the preset's).")
+    integrator: Literal[INTEGRATORS] = Field("grid", description="Path integrator.")
     preset: str | None = Field(
         None, description="Dataset preset passed to every service that has one, or a preset file (base preset and "
                           "per-service tables, docs/sources.md).")
@@ -106,10 +101,10 @@ class _RunFields(BaseModel):
                                     "runs the estimator frame after frame; more run it in blocks, and at least N + 1 "
                                     "blocks of frames are kept in flight.")
     mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
-    closure: Literal["metric", "ratslam"] | None = Field(
+    closure: Literal[CLOSURES] | None = Field(
         None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
                           "default: the services' (metric).")
-    map_optimizer: Literal["gtsam", "ratslam"] | None = Field(
+    map_optimizer: Literal[MAP_OPTIMIZERS] | None = Field(
         None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
     map: Path | None = Field(
         None, description="Start from the map an earlier run left in this results folder (read only); this run is its next "
@@ -133,10 +128,14 @@ class _RunFields(BaseModel):
     stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
 
 
-# The ROS 2 graph settings of the ros2 service and of a ros2: source (--ros-domain-id,
-# --ros-namespace, --ros-distro, --ros2-keys), declared once in GraphParams; None: the service's.
+# The settings the run passes on to a service, declared once with it; None: the service's. The
+# grid-cell stage's choices (GridStageParams: --decoder, --step-source, --modules, --heading) and
+# the ROS 2 graph settings of the ros2 service and of a ros2: source (GraphParams: --ros-domain-id,
+# --ros-namespace, --ros-distro, --ros2-keys).
+_GRID_STAGE = config_fields(GridStageParams, optional=True)
 RunConfig = create_model("RunConfig", __base__=_RunFields, __doc__=_RunFields.__doc__,
-                         **config_fields(GraphParams, optional=True))
+                         decoder=_GRID_STAGE["decoder"], step_source=_GRID_STAGE["step"], modules=_GRID_STAGE["modules"],
+                         heading=_GRID_STAGE["heading"], **config_fields(GraphParams, optional=True))
 
 
 @dataclass

@@ -40,6 +40,7 @@ from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
 from services.common.odometry import DeadReckoning, turn_first
+from services.common.settings import add_field_flag
 from services.ros.messages import (
     ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, TOPICS, MapState, RosMessages, camera_jpeg, typestore,
 )
@@ -363,10 +364,8 @@ class FoxgloveService(Service):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", help="address to bind (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, help="WebSocket port (default 8765; 0: any free port)")
-    parser.add_argument("--allow-remote", action="store_true", default=None,
-                        help="allow a non-loopback --host (the Foxglove protocol has no authentication)")
+    for name in ("host", "port", "allow_remote"):
+        add_field_flag(parser, FoxgloveConfig, name)
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:

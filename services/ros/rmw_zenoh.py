@@ -137,10 +137,6 @@ def mangle(name: str) -> str:
     return name.replace("/", "%")
 
 
-def demangle(chunk: str) -> str:
-    return chunk.replace("%", "/")
-
-
 def type_hash(distro: str, rihs01: str) -> str:
     """The hash chunk of keys and tokens: RIHS01 from Jazzy on, Humble's literal before."""
     return TYPE_HASH_NOT_SUPPORTED if distro == "humble" else rihs01

@@ -17,12 +17,12 @@ Any other key is an error, so a typo never passes silently.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
+from services.common.config import read_toml
 from services.common.frames import Camera, SourceError
 
 # A monocular image folder, video or camera without a calibration gets a pinhole camera with this
@@ -79,15 +79,7 @@ def camera_from_mapping(values: Mapping[str, Any], where: str) -> Camera:
 
 def read_calibration(path: str | Path) -> Camera:
     """Read a calibration file of our TOML format (module docstring)."""
-    path = Path(path)
-    try:
-        with path.open("rb") as stream:
-            table = tomllib.load(stream)
-    except FileNotFoundError:
-        raise SourceError(f"{path}: calibration file not found") from None
-    except (OSError, tomllib.TOMLDecodeError) as error:
-        raise SourceError(f"{path}: not a readable TOML calibration file: {error}") from None
-    return camera_from_mapping(table, str(path))
+    return camera_from_mapping(read_toml(path, "calibration file", SourceError), str(path))
 
 
 def write_calibration(path: str | Path, camera: Camera) -> None:

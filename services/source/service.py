@@ -42,7 +42,7 @@ from services.common.convert import image_to_msg, matrix_to_pose
 from services.common.health import live_services, statuses
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.settings import add_renamed_flag
+from services.common.settings import add_field_flag, add_renamed_flag
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
 from services.common.frames import Frame, FrameSource
@@ -82,7 +82,7 @@ class _SourceSettings(BaseModel):
         None, ge=0, description="Frame whose camera pose is the ground truth's origin (default: the first frame sent); "
                                 "a source restarted mid-run keeps the run's origin.")
     stop: int | None = Field(None, ge=0, description="Frame index to stop before (default: the end).")
-    step: int = Field(1, ge=1, description="Take every step-th frame.")
+    step: int = Field(1, ge=1, description="Take every step-th frame (the stride).")
     rate: float = Field(0.0, ge=0.0, description="Frames per second to publish at; 0: as fast as the window allows.")
     window: int = Field(8, ge=0, description="Frames in flight awaiting ack_topic before the source waits; 0: no flow control. "
                                              "With adaptive_window, the most it keeps in flight.")
@@ -387,29 +387,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
                                          "rosbag:PATH or ros2:TOPIC")
     parser.add_argument("--preset", help="source preset: nubot, kitti, stlucia, synthetic, campus, irat, or a preset file")
-    parser.add_argument("--calibration", type=Path, help="calibration TOML file")
+    add_field_flag(parser, SourceConfig, "calibration", metavar="FILE")
     add_fov_argument(parser)
-    parser.add_argument("--mono", action="store_true", default=None, help="publish only the left image")
-    parser.add_argument("--start", type=int, help="first frame index")
-    parser.add_argument("--origin", type=int, help="frame whose pose is the ground truth's origin (default: --start)")
-    parser.add_argument("--stop", type=int, help="frame index to stop before")
-    parser.add_argument("--stride", dest="step", type=int, metavar="N", help="take every N-th frame (default 1)")
+    for name in ("mono", "start", "origin", "stop"):
+        add_field_flag(parser, SourceConfig, name)
+    add_field_flag(parser, SourceConfig, "step", flag="--stride", metavar="N")
     add_renamed_flag(parser, "--step", "--stride", dest="step", type=int)
-    parser.add_argument("--rate", type=float, help="frames per second (default: as fast as the pipeline)")
-    parser.add_argument("--window", type=int, help="frames in flight before waiting (default 8; 0: no flow control); with "
-                                                   "the adaptive window, the most")
+    add_field_flag(parser, SourceConfig, "rate", metavar="HZ")
+    add_field_flag(parser, SourceConfig, "window", metavar="N")
     parser.add_argument("--adaptive-window", action=argparse.BooleanOptionalAction, default=None,
-                        help="keep only as many frames in flight as keep the slowest stage busy (default on)")
-    parser.add_argument("--live-window", type=int, help="frames in flight from a live camera (default 2; 0: no flow control)")
-    parser.add_argument("--ack-topic", help="topic that acknowledges a processed frame (default map/pose)")
-    parser.add_argument("--resend-after", type=float, help="seconds without acknowledgement before resending (default 5)")
-    parser.add_argument("--resend-acknowledged", type=int, metavar="N",
-                        help="acknowledged frames sent again before the frames in flight (default 17)")
-    parser.add_argument("--loop", action="store_true", default=None, help="start again at the first frame after the last, for ever")
+                        help=f"{SourceConfig.model_fields['adaptive_window'].description.rstrip('.')} (default on)")
+    add_field_flag(parser, SourceConfig, "live_window", metavar="N")
+    add_field_flag(parser, SourceConfig, "ack_topic", metavar="TOPIC")
+    add_field_flag(parser, SourceConfig, "resend_after", metavar="S")
+    add_field_flag(parser, SourceConfig, "resend_acknowledged", metavar="N")
+    add_field_flag(parser, SourceConfig, "loop")
     parser.add_argument("--wait-for", type=lambda text: [name.strip() for name in text.split(",") if name.strip()],
                         help="services whose health tokens must be up before the first frame, comma separated")
-    parser.add_argument("--resume", action="store_true", default=None,
-                        help="start where the running services are (a source restarted mid-run)")
+    add_field_flag(parser, SourceConfig, "resume")
     add_world_arguments(parser)
     add_bag_arguments(parser)
     from services.ros.graph_settings import add_graph_arguments

@@ -36,6 +36,7 @@ from services.common.errors import ConfigError
 from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
+from services.common.settings import add_field_flag
 from services.viewer.config import ViewerConfig
 from services.common.images import display_image, encode_camera_jpeg
 from services.viewer.state import Cursor, ViewerState, encode_lattice_png
@@ -377,15 +378,14 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--http", metavar="HOST:PORT", help="where to serve the page (default 127.0.0.1:8080)")
-    parser.add_argument("--allow-remote", action="store_true", default=None,
-                        help="allow a non-loopback --http address (the page has no authentication)")
-    parser.add_argument("--rate", type=float, metavar="HZ", help="state updates per second to each browser (default 10)")
+    add_field_flag(parser, ViewerConfig, "http", metavar="HOST:PORT")
+    add_field_flag(parser, ViewerConfig, "allow_remote")
+    add_field_flag(parser, ViewerConfig, "rate_hz", flag="--rate", metavar="HZ")
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(ViewerConfig, "viewer", config_file=args.config,
-                         overrides={"http": args.http, "allow_remote": args.allow_remote, "rate_hz": args.rate})
+                         overrides={"http": args.http, "allow_remote": args.allow_remote, "rate_hz": args.rate_hz})
     service = ViewerService(runtime, config, args.instance)
     print(f"gridslam viewer: {service.url}", flush=True)
     return service.run()

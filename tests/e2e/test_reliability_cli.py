@@ -42,10 +42,12 @@ def files(folder: Path) -> dict[str, Path]:
         "calibration_wrong_type": "fx = \"long\"\nfy = 1.0\ncx = 1.0\ncy = 1.0\n",
         "motion.csv": "forward,left,yaw\n0.1,0.0,0.0\nfast,0.0,0.0\n",
         "zenoh.json5": "{ this is: not json5 ]",
+        "results/metrics.json": "{ not json",
     }
     paths = {}
     for name, text in written.items():
         path = folder / (name if "." in name else f"{name}.toml")
+        path.parent.mkdir(exist_ok=True)
         path.write_text(text)
         paths[name] = path
     return paths
@@ -90,6 +92,8 @@ def cases(folder: Path) -> list[tuple[str, list[str], str]]:
         ("integrate: missing input", ["integrate", str(missing)], str(missing)),
         ("integrate: a column not a number", ["integrate", str(f["motion.csv"])], "motion.csv"),
         ("integrate: unknown format", ["integrate", str(f["motion.csv"]), "--format", "xls"], "xls"),
+        ("export table: not a results folder", ["export", "table", str(missing)], "metrics.json"),
+        ("export table: metrics not JSON", ["export", "table", str(f["results/metrics.json"].parent)], "metrics.json: not readable JSON"),
         # gridslam service NAME: every service refuses bad settings before it looks for a router
         ("source: no source", ["service", "source", "-e", port], "source"),
         ("source: unknown source kind", ["service", "source", "-e", port, "--source", "floppy:0"], "floppy"),

@@ -28,10 +28,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("rosbags", reason="the optional extra 'ros' is not installed")
-pytest.importorskip("foxglove", reason="the optional extra 'foxglove' is not installed")
-pytest.importorskip("mcap_ros2", reason="mcap-ros2-support (test extra) is not installed")
-pytest.importorskip("websockets", reason="websockets (test extra) is not installed")
+from tests.extras import require
+
+require("rosbags", "ros")
+require("foxglove", "foxglove")
+require("mcap_ros2", "test")
+require("websockets", "test")
 
 from mcap.reader import make_reader   # noqa: E402
 from mcap_ros2.decoder import DecoderFactory   # noqa: E402

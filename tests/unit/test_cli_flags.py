@@ -197,3 +197,20 @@ def test_run_help_lists_every_preset_and_the_calibration_keys():
     for group in ("input:", "stages:", "mapping:", "outputs:", "ROS bag:", "synthetic world:", "ROS 2:", "map reuse:",
                   "place recognition:", "examples:"):
         assert group in text, group
+
+
+def test_flags_derived_from_a_config_model_take_its_type_choices_and_default():
+    from services.common.settings import CommandParser, add_field_flag
+    from services.loopclosure.service import LoopClosureConfig
+    from services.ros.foxglove import FoxgloveConfig
+
+    parser = CommandParser(prog="test")
+    add_field_flag(parser, FoxgloveConfig, "port")
+    add_field_flag(parser, FoxgloveConfig, "allow_remote")
+    add_field_flag(parser, LoopClosureConfig, "closure")
+    assert vars(parser.parse_args([])) == {"port": None, "allow_remote": None, "closure": None}   # not given
+    args = parser.parse_args(["--port", "9000", "--allow-remote", "--closure", "ratslam"])
+    assert (args.port, args.allow_remote, args.closure) == (9000, True, "ratslam")
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--closure", "snap"])
+    assert "(default 8765)" in parser.format_help()

@@ -101,6 +101,10 @@ def test_config_file_overrides_preset_and_bad_files_name_themselves(tmp_path):
     bad.write_text("[stereo]\nmin_inliers = 'many'\n")
     with pytest.raises(EstimatorConfigError, match=r"bad.toml: \[stereo\]: min_inliers must be an integer"):
         read_config_file(bad)
+    whole = tmp_path / "run.toml"   # a whole run's config file: its [egomotion] table
+    whole.write_text('[source]\nlaps = 2\n[egomotion]\nestimator = "scanline"\ninstances = 2\n'
+                     '[egomotion.scanline]\nmax_shift_px = 7\n')
+    assert load_estimator_config("nubot", whole) == (default, params)
     with pytest.raises(EstimatorConfigError, match="config file not found"):
         read_config_file(tmp_path / "absent.toml")
     with pytest.raises(EstimatorConfigError, match="unknown estimator preset"):

@@ -6,7 +6,9 @@ import math
 
 import pytest
 
-pytest.importorskip("foxglove", reason="the optional extra 'foxglove' is not installed")
+from tests.extras import require
+
+require("foxglove", "foxglove")
 
 from schemas import EgoMotion, Header, PlanarIncrement, Time  # noqa: E402
 from services.common.runtime import RuntimeConfig  # noqa: E402
@@ -20,7 +22,7 @@ def test_egomotion_poses_compose_the_increments_and_restart_with_a_new_run():
     service.ros.planar_pose = lambda stage, stamp, x, y, heading: poses.append((stage, x, y, heading)) or []
     increments = [(0.0, 0.0, 0.0)] + [(0.1, 0.01, math.radians(5))] * 30
     try:
-        for run in range(2):   # the second run starts again at seq 0: a new track from the origin
+        for _ in range(2):   # the second run starts again at seq 0: a new track from the origin
             for seq, (forward, left, yaw) in enumerate(increments):
                 service.on_egomotion(EgoMotion(header=Header(seq=seq, stamp=Time.from_seconds(0.1 * seq)),
                                                increment=PlanarIncrement(forward=forward, left=left, yaw=yaw),

@@ -21,6 +21,7 @@ from services.evaluation.metrics import (
     rpe,
 )
 from services.evaluation.trajectory import Trajectory, integrate_increments, planar_increments
+from tests.extras import require
 
 
 def yaw_matrix(angle):
@@ -256,10 +257,10 @@ def test_associate_drops_unmatched_frames():
         associate(est, ref, max_dt=0.001)
 
 
-# --- cross-check with evo (dev only: evo is GPL and not a dependency) -----------------------
-def test_agrees_with_evo_when_installed():
-    evo_trajectory = pytest.importorskip("evo.core.trajectory")
-    evo_metrics = pytest.importorskip("evo.core.metrics")
+# --- cross-check with evo (the test extra; GPL, so never imported by services/) --------------
+def test_agrees_with_evo():
+    evo_trajectory = require("evo.core.trajectory", "test")
+    evo_metrics = require("evo.core.metrics", "test")
     ref = random_3d(n=60, seed=7)
     rng = np.random.default_rng(8)
     est = apply_transform(ref, yaw_matrix(0.3), np.array([1.0, 2.0, 0.5]), scale=0.8)

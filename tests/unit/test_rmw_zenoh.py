@@ -6,9 +6,7 @@ every message the live node publishes parsed by real rclpy into the fields that 
 
 from __future__ import annotations
 
-import importlib
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -17,8 +15,9 @@ import pytest
 
 from services.ros import rmw_zenoh
 from services.ros.rmw_zenoh import Qos, WireError
+from tests.extras import require
 
-pytest.importorskip("rosbags", reason="the optional extra 'ros' is not installed")
+require("rosbags", "ros")
 
 SHARE = Path(sys.prefix) / "share"
 CHATTER_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
@@ -27,13 +26,6 @@ ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf303
 TYPES = ("nav_msgs/msg/Odometry", "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/PoseWithCovarianceStamped",
          "nav_msgs/msg/Path", "visualization_msgs/msg/MarkerArray", "sensor_msgs/msg/Image",
          "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo")
-
-
-def require(module: str):
-    """The ROS 2 test packages (test extra): a skip here, a failure in CI, where they are installed."""
-    if os.environ.get("CI") == "true":
-        return importlib.import_module(module)
-    return pytest.importorskip(module, reason=f"{module} (test extra, ros-kilted-* wheels) is not installed")
 
 
 # --------------------------------------------------------------------------- design.md's examples
@@ -110,7 +102,7 @@ def test_attachment_is_what_zenohs_serializer_writes_and_reads():
 
 
 def test_gid_is_xxh3_128_of_the_token_low_half_first():
-    xxhash = pytest.importorskip("xxhash")
+    xxhash = require("xxhash", "ros")
     token = "@ros2_lv/0/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
     value = xxhash.xxh3_128_intdigest(token.encode())
     assert rmw_zenoh.gid(token) == (value & (2**64 - 1)).to_bytes(8, "little") + (value >> 64).to_bytes(8, "little")
@@ -144,7 +136,7 @@ def rosidl_hash(msgtype: str, tmp_path: Path) -> str:
 
 @pytest.mark.parametrize("distro", ["jazzy", "kilted", "rolling"])
 def test_type_hashes_equal_rosidls_and_rosbags(distro, tmp_path):
-    require("rosidl_generator_type_description")
+    require("rosidl_generator_type_description", "test")
     from rosbags.typesys import Stores, get_typestore
 
     from services.ros.messages import RosMessages
@@ -159,7 +151,7 @@ def test_type_hashes_equal_rosidls_and_rosbags(distro, tmp_path):
 # --------------------------------------------------------------------------- CDR read by rclpy
 @pytest.fixture(scope="module")
 def rclpy_serialization():
-    require("rclpy")
+    require("rclpy", "test")
     from rclpy.serialization import deserialize_message
 
     return deserialize_message

@@ -10,7 +10,9 @@ import logging
 import numpy as np
 import pytest
 
-pytest.importorskip("rosbags", reason="the optional extra 'ros' is not installed")
+from tests.extras import require
+
+require("rosbags", "ros")
 
 from services.ros.messages import RosMessages   # noqa: E402
 from services.source.ros2 import Ros2Source   # noqa: E402

@@ -9,8 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-pytest.importorskip("rosbags", reason="the optional extra 'ros' is not installed")
-pytest.importorskip("mcap_ros2", reason="mcap-ros2-support (test extra) is not installed")
+from tests.extras import require
+
+require("rosbags", "ros")
+require("mcap_ros2", "test")
 
 from mcap.reader import make_reader   # noqa: E402
 from mcap_ros2.decoder import DecoderFactory   # noqa: E402
@@ -171,7 +173,7 @@ def test_the_foxglove_server_binds_loopback_unless_allowed():
 
 
 def test_the_foxglove_server_says_in_one_line_that_its_port_is_taken():
-    pytest.importorskip("foxglove", reason="the optional extra 'foxglove' is not installed")
+    require("foxglove", "foxglove")
     import socket
 
     from services.common.errors import ConfigError

@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-pytest.importorskip("rosbags")
+from tests.extras import require
+
+require("rosbags", "ros")
 
 from services.common.geometry import between, compose  # noqa: E402
 from services.ros import projection  # noqa: E402

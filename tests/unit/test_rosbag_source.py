@@ -10,7 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-pytest.importorskip("rosbags", reason="the optional extra 'ros' (rosbags) is not installed")
+from tests.extras import require
+
+require("rosbags", "ros")
 
 from services.common.errors import GridslamError   # noqa: E402
 from services.source import Camera, SourceError, open_source   # noqa: E402

@@ -265,7 +265,7 @@ def test_bad_calibration_files(tmp_path):
     bad.write_text("fx = 300\nfy = 'wide'\ncx = 160\ncy = 120\n")
     assert "'fy' is not a finite number" in error_of(f"stereo:{tmp_path / 'data'}", calibration=bad)
     bad.write_text("fx = [300\n")
-    assert "not a readable TOML" in error_of(f"stereo:{tmp_path / 'data'}", calibration=bad)
+    assert "not valid TOML" in error_of(f"stereo:{tmp_path / 'data'}", calibration=bad)
     assert "calibration file not found" in error_of(f"stereo:{tmp_path / 'data'}", calibration=tmp_path / "none.toml")
 
 

@@ -16,8 +16,10 @@ import urllib.request
 
 import pytest
 
-pytest.importorskip("foxglove", reason="the optional extra 'foxglove' is not installed")
-pytest.importorskip("websockets", reason="websockets (test extra) is not installed")
+from tests.extras import require
+
+require("foxglove", "foxglove")
+require("websockets", "test")
 
 import foxglove  # noqa: E402
 from websockets.exceptions import InvalidStatus  # noqa: E402
