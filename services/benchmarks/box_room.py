@@ -14,8 +14,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.egomotion.base import invert_transform, transform_from_increment
-from services.source.frames import Camera, Frame
+from services.common.geometry import invert_transform, transform_from_increment
+from services.common.frames import Camera, Frame
 
 TEXELS_PER_M = 160.0
 TEXTURE_SIZE = 1024

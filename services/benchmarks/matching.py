@@ -1,6 +1,6 @@
 """The place recognition's cost per frame as the map grows, for `gridslam bench mapping`.
 
-`scanline`: N realistic view templates (smooth random scenes, services/loopclosure/bench.py)
+`scanline`: N realistic view templates (smooth random scenes, services/benchmarks/loopclosure.py)
 and frames that revisit them or show new views (ViewTemplates.observe timed).
 
 `bow` and `sequence`: N places made from the frames of the `campus` world (rendered here: 320×240,
@@ -89,7 +89,7 @@ def _places_bytes(places) -> int:
 
 
 def _scanline(size: int, frames: int, rng: np.random.Generator) -> dict:
-    from services.loopclosure.bench import make_store, query_frames, random_scenes
+    from services.benchmarks.loopclosure import make_store, query_frames, random_scenes
     from services.loopclosure.templates import TemplateParams
 
     params = TemplateParams()

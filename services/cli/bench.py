@@ -7,19 +7,19 @@ import importlib
 
 # Benchmark name → module with main(argv) -> int.
 BENCHMARKS: dict[str, str] = {
-    "source": "services.source.bench",
-    "gridcells": "services.gridcells.bench",
-    "egomotion": "services.egomotion.bench",
-    "viewer": "services.viewer.bench",
-    "pipeline": "services.pipeline.bench",
-    "sharding": "services.pipeline.shard_bench",
-    "load": "services.pipeline.load_bench",
-    "loopclosure": "services.loopclosure.bench",
-    "mapping": "services.expmap.bench",
-    "geometry": "services.loopclosure.geometry_bench",
+    "source": "services.benchmarks.source",
+    "gridcells": "services.benchmarks.gridcells",
+    "egomotion": "services.benchmarks.egomotion",
+    "viewer": "services.benchmarks.viewer",
+    "pipeline": "services.benchmarks.pipeline",
+    "sharding": "services.benchmarks.sharding",
+    "load": "services.benchmarks.load",
+    "loopclosure": "services.benchmarks.loopclosure",
+    "mapping": "services.benchmarks.mapping",
+    "geometry": "services.benchmarks.geometry",
     "place-recognition": "services.benchmarks.place_recognition",
-    "ros2": "services.ros.bench",
-    "foxglove": "services.ros.foxglove_bench",
+    "ros2": "services.benchmarks.ros2",
+    "foxglove": "services.benchmarks.foxglove",
 }
 
 

@@ -48,7 +48,7 @@ def add_network_flags(parser: argparse.ArgumentParser) -> None:
 
 
 def grid_options(args):
-    from services.gridcells.offline import GridOptions
+    from services.offline.integration import GridOptions
 
     return GridOptions(step=args.step, modules=args.modules, heading=args.heading)
 
@@ -73,7 +73,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from services.gridcells.offline import integrate, integration_table  # numpy/matplotlib work: loaded only when run
+    from services.offline.integration import integrate, integration_table  # numpy/matplotlib work: loaded only when run
 
     result = integrate(
         args.input, fmt=args.fmt, decoder=args.decoder, velocity_scale=args.velocity_scale, n_frames=args.n_frames,

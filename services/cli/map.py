@@ -180,7 +180,7 @@ def run_export(args) -> int:
 
 def _inputs(args):
     """Images, odometry and the three services' parameters of a build or sweep."""
-    from services.expmap.offline import odometry_from_motion
+    from services.offline.mapping import odometry_from_motion
     from services.expmap.service import ExpMapConfig
     from services.gridcells.config import GridCellsConfig
     from services.gridcells.integrator import auto_velocity_scale
@@ -217,7 +217,7 @@ def _inputs(args):
 
 
 def run_build(args) -> int:
-    from services.expmap.offline import build_map, write_build
+    from services.offline.mapping import build_map, write_build
 
     images, odometry, reference, loopclosure, expmap, config = _inputs(args)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -249,7 +249,7 @@ def run_build(args) -> int:
 
 
 def run_sweep(args) -> int:
-    from services.expmap.offline import sweep
+    from services.offline.mapping import sweep
 
     try:
         thresholds = [float(v) for v in args.thresholds.split(",") if v.strip()]

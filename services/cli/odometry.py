@@ -9,7 +9,7 @@ from pathlib import Path
 
 from services.common.settings import add_renamed_flag
 from services.egomotion import ESTIMATORS
-from services.egomotion.offline import run_offline, summary_rows
+from services.offline.odometry import run_offline, summary_rows
 from services.evaluation.results import format_table
 from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
 

@@ -39,7 +39,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from services.gridcells.offline import simulate, simulation_table  # numpy/matplotlib work: loaded only when run
+    from services.offline.integration import simulate, simulation_table  # numpy/matplotlib work: loaded only when run
 
     result = simulate(
         n_frames=args.n_frames, seed=args.seed, decoders=args.decoders, noise_trans=args.noise_trans,

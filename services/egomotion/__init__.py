@@ -21,6 +21,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
+from services.common.geometry import increment_from_transform, transform_from_increment
 from services.common.settings import config_fields
 from services.common.stages import ESTIMATORS as ESTIMATOR_NAMES
 from services.egomotion.base import (
@@ -28,9 +29,7 @@ from services.egomotion.base import (
     Estimator,
     EstimatorConfigError,
     Increment,
-    increment_from_transform,
     params_from_dict,
-    transform_from_increment,
 )
 from services.egomotion.mono import MonoEstimator, MonoParams
 from services.egomotion.passthrough import PassthroughEstimator, PassthroughParams

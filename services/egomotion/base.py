@@ -1,6 +1,6 @@
 """What every ego-motion estimator shares: the per-frame `Increment`, the `Estimator` protocol,
-the conversions between a camera-frame transform and a planar body-frame increment, and the
-parameter handling (plain dataclasses built from dicts, unknown keys rejected by name).
+an increment from a camera transform (the transforms themselves: services/common/geometry.py),
+and the parameter handling (plain dataclasses built from dicts, unknown keys rejected by name).
 
 Conventions (DESIGN.md, docs/egomotion.md):
 - Camera frame: x right, y down, z forward (KITTI, LIBVISO2, OpenCV).
@@ -18,11 +18,10 @@ import math
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar, runtime_checkable
 
-import cv2
 import numpy as np
 
 from services.common.errors import ConfigError, GridslamError
-from services.common.geometry import planar_from_camera
+from services.common.geometry import increment_from_transform
 
 
 class EgomotionError(GridslamError):
@@ -115,64 +114,11 @@ class Estimator(Protocol):
 # Conversions
 
 
-def increment_from_transform(transform: np.ndarray) -> tuple[float, float, float]:
-    """(forward, left, yaw) of the camera motion described by ``transform`` (p_cur = T p_prev).
-
-    The camera's pose in the previous frame is M = inv(T); forward is its z translation, left
-    its −x translation, yaw the heading of its optical axis about the up axis (−y):
-    atan2(−M13, M33), which is the data README's asin(−Tt13) for level motion.
-    """
-    return planar_from_camera(invert_transform(transform))
-
-
-def transform_from_increment(forward: float, left: float, yaw: float) -> np.ndarray:
-    """The camera transform (p_cur = T p_prev) of a level planar motion; inverse of
-    `increment_from_transform` for motions without pitch, roll or height change."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    motion = np.eye(4)
-    # Counter-clockwise yaw turns the optical axis (z) toward −x (left): a rotation about −y.
-    motion[:3, :3] = [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]
-    motion[:3, 3] = [-left, 0.0, forward]
-    return invert_transform(motion)
-
-
-def invert_transform(transform: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4×4 transform (rotation transposed), exact and cheap."""
-    inverse = np.eye(4)
-    rotation = transform[:3, :3]
-    inverse[:3, :3] = rotation.T
-    inverse[:3, 3] = -rotation.T @ transform[:3, 3]
-    return inverse
-
-
-def transform_from_rt(rvec_or_matrix: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    """A 4×4 from an OpenCV rotation (Rodrigues vector or 3×3 matrix) and translation."""
-    rotation = np.asarray(rvec_or_matrix, dtype=float)
-    if rotation.shape != (3, 3):
-        rotation = cv2.Rodrigues(rotation.reshape(3, 1))[0]
-    transform = np.eye(4)
-    transform[:3, :3] = rotation
-    transform[:3, 3] = np.asarray(tvec, dtype=float).reshape(3)
-    return transform
-
-
 def increment_with_transform(
     transform: np.ndarray, *, quality: float, inliers: int, match_cost: float, scaled: bool = True
 ) -> Increment:
     forward, left, yaw = increment_from_transform(transform)
     return Increment(forward, left, yaw, transform, float(quality), int(inliers), float(match_cost), scaled)
-
-
-def grey(image: np.ndarray) -> np.ndarray:
-    """An 8-bit single-channel view of a frame image (BGR converted with OpenCV's luma)."""
-    if image.ndim == 3:
-        if image.shape[2] == 1:
-            image = image[:, :, 0]
-        else:
-            image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    if image.dtype != np.uint8:
-        image = np.clip(image, 0, 255).astype(np.uint8)
-    return image
 
 
 # ---------------------------------------------------------------------------------------------

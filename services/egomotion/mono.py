@@ -32,8 +32,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.egomotion.base import Increment, NoiseModel, grey, increment_with_transform, zero_increment
-from services.egomotion.features import FeatureParams, TrackParams, detect_bucketed, global_shift, track
+from services.common.images import grey
+from services.egomotion.base import Increment, NoiseModel, increment_with_transform, zero_increment
+from services.common.features import FeatureParams, TrackParams, detect_bucketed, global_shift, track
 
 logger = logging.getLogger(__name__)
 

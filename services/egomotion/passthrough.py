@@ -12,13 +12,12 @@ from typing import Any
 
 import numpy as np
 
+from services.common.geometry import invert_transform, transform_from_increment
 from services.egomotion.base import (
     EgomotionError,
     Increment,
     NoiseModel,
     increment_with_transform,
-    invert_transform,
-    transform_from_increment,
     zero_increment,
 )
 

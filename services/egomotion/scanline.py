@@ -27,7 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from services.egomotion.base import Increment, NoiseModel, grey, zero_increment
+from services.common.images import grey
+from services.egomotion.base import Increment, NoiseModel, zero_increment
 
 @dataclass(frozen=True)
 class ScanlineParams(NoiseModel):

@@ -32,7 +32,7 @@ from services.common.stages import ESTIMATORS as ESTIMATOR_NAMES
 from services.egomotion import ESTIMATORS, SHARD_SETTINGS, make_estimator, resolve_estimator, resolve_sharding
 from services.egomotion.base import params_from_dict
 from services.egomotion.shards import BlockEstimation, FrameByFrame, FrameHistory, ShardParams, block_owner
-from services.source.frames import Camera, Frame
+from services.common.frames import Camera, Frame
 
 log = logging.getLogger(__name__)
 

@@ -30,17 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.egomotion.base import (
-    EgomotionError,
-    Increment,
-    NoiseModel,
-    grey,
-    increment_with_transform,
-    invert_transform,
-    transform_from_rt,
-    zero_increment,
-)
-from services.egomotion.features import (
+from services.common.features import (
     FeatureParams,
     TrackParams,
     bucket_of,
@@ -48,6 +38,15 @@ from services.egomotion.features import (
     first_per_bucket,
     global_shift,
     track,
+)
+from services.common.geometry import invert_transform, transform_from_rt
+from services.common.images import grey
+from services.egomotion.base import (
+    EgomotionError,
+    Increment,
+    NoiseModel,
+    increment_with_transform,
+    zero_increment,
 )
 
 logger = logging.getLogger(__name__)

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
-from services.common.geometry import wrap
+from services.common.odometry import DeadReckoning, GridStep, PathIntegrator, Pose2D, body_to_world, turn_first
 from services.gridcells.calibration import CalibrationGrid, FlowTable, LagInverter, flow_table
 from services.common import stages
 from services.common.stages import HEADING_MODELS, STEP_SOURCES
@@ -58,74 +58,6 @@ LINEAR_LIMIT = 0.3
 # auto_velocity_scale puts the 95th-percentile speed at this shift per frame (neurons): half
 # the linear range, a third of the ±9 search, so speeds up to ~1.9× that percentile stay linear.
 TARGET_SHIFT = 3.0
-
-
-@dataclass(frozen=True)
-class Pose2D:
-    x: float  # world x, input units (metres)
-    y: float  # world y
-    heading: float  # rad from world +x, counter-clockwise, in (−π, π]
-
-
-@dataclass(frozen=True)
-class GridStep:
-    pose: Pose2D  # pose after this frame
-    shift: tuple[float, float]  # decoded lattice shift (dx columns, dy rows) since the last frame
-    step_length: float  # distance the pose moved this frame (0 when no step was taken)
-    saturated: bool  # the network was driven beyond its linear range or the shift hit the search edge
-
-
-def _finite(**values: float) -> None:
-    for name, value in values.items():
-        if value is not None and not math.isfinite(value):
-            raise GridCellError(f"motion input '{name}' is {value}: expected a finite number")
-
-
-def _body_to_world(forward: float, left: float, heading: float) -> tuple[float, float]:
-    c, s = math.cos(heading), math.sin(heading)
-    return forward * c - left * s, forward * s + left * c
-
-
-class PathIntegrator:
-    """What both integrators share: the head-direction integration of yaw (heading += yaw, then
-    the body-frame step is rotated into the world by the new heading, as the authors' code does),
-    the pose, and the counters. Subclasses turn a world-frame displacement into a step."""
-
-    def __init__(self, heading0: float = 0.0):
-        _finite(heading0=heading0)
-        self._pose = Pose2D(0.0, 0.0, float(wrap(heading0)))
-        self.frames = 0
-        self.saturations = 0
-
-    @property
-    def pose(self) -> Pose2D:
-        return self._pose
-
-    def step(self, forward: float, left: float, yaw: float) -> GridStep:
-        """One frame of body-frame increments (input units and rad per frame)."""
-        _finite(forward=forward, left=left, yaw=yaw)
-        heading = float(wrap(self._pose.heading + yaw))
-        vx, vy = _body_to_world(forward, left, heading)
-        return self._advance(vx, vy, heading)
-
-    def step_world(self, vx: float, vy: float, heading: float | None = None) -> GridStep:
-        """One frame of world-frame displacement (the authors' network input); ``heading``,
-        when given, becomes the pose's heading."""
-        _finite(vx=vx, vy=vy, heading=heading)
-        return self._advance(vx, vy, self._pose.heading if heading is None else float(wrap(heading)))
-
-    def _advance(self, vx: float, vy: float, heading: float) -> GridStep:
-        raise NotImplementedError
-
-    def checkpoint(self) -> dict:
-        """What evolves from frame to frame; restore() on a fresh integrator of the same
-        parameters resumes exactly."""
-        return {"pose": (self._pose.x, self._pose.y, self._pose.heading), "frames": self.frames,
-                "saturations": self.saturations}
-
-    def restore(self, checkpoint: dict) -> None:
-        self._pose = Pose2D(*(float(v) for v in checkpoint["pose"]))
-        self.frames, self.saturations = int(checkpoint["frames"]), int(checkpoint["saturations"])
 
 
 DECODER_NAMES = stages.DECODERS   # the decoders of decoders.py and calibrated (calibration.py)
@@ -176,14 +108,6 @@ def module_params(params: NetworkParams, modules: int) -> tuple[NetworkParams, .
     return tuple(replace(params, alpha=params.alpha * MODULE_RATIO**e) if e else params for e in MODULE_EXPONENTS[:modules])
 
 
-def turn_first(forward: float, left: float, yaw: float) -> tuple[float, float]:
-    """An SE(2) increment (translation in the body frame *before* the frame's yaw, as the
-    EgoMotion message and planar_increments define it) in the integrators' order (turn first,
-    then move in the new body frame, as the authors' code does): the translation turned by −yaw."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return c * forward + s * left, -s * forward + c * left
-
-
 class GridCellIntegrator(PathIntegrator):
     """The grid-cell odometry. ``decoder`` is "paper", "fft", "subpixel" (see decoders.py) or
     "calibrated" (subpixel's shift, then the inverse of the measured flow: calibration.py).
@@ -213,6 +137,8 @@ class GridCellIntegrator(PathIntegrator):
     ``saturations`` counts them and the first one is logged as a warning. With
     velocity_scale = 1 the authors' NuBot input (metres) saturates from about 0.15 m per frame on.
     """
+
+    error = GridCellError
 
     def __init__(
         self,
@@ -284,15 +210,15 @@ class GridCellIntegrator(PathIntegrator):
     def step(self, forward: float, left: float, yaw: float) -> GridStep:
         if self.ring is None:
             return super().step(forward, left, yaw)
-        _finite(forward=forward, left=left, yaw=yaw)
+        self._finite(forward=forward, left=left, yaw=yaw)
         heading, clipped = self.ring.step(yaw)
-        vx, vy = _body_to_world(forward, left, heading)
+        vx, vy = body_to_world(forward, left, heading)
         return self._advance(vx, vy, heading, clipped)
 
     def step_world(self, vx: float, vy: float, heading: float | None = None) -> GridStep:
         if self.ring is not None and heading is not None:
             # World-frame inputs with a heading: the ring follows the heading's change.
-            _finite(vx=vx, vy=vy, heading=heading)
+            self._finite(vx=vx, vy=vy, heading=heading)
             heading, clipped = self.ring.step(math.remainder(heading - self._pose.heading, 2 * math.pi))
             return self._advance(vx, vy, heading, clipped)
         return super().step_world(vx, vy, heading)
@@ -376,15 +302,6 @@ class GridCellIntegrator(PathIntegrator):
                 inverter.previous_flow = complex(flow)
         if self.ring is not None and "ring_state" in checkpoint:
             self.ring.restore(checkpoint)
-
-
-class DeadReckoning(PathIntegrator):
-    """The baseline: the same inputs and heading convention, integrated directly."""
-
-    def _advance(self, vx: float, vy: float, heading: float) -> GridStep:
-        self.frames += 1
-        self._pose = Pose2D(self._pose.x + vx, self._pose.y + vy, heading)
-        return GridStep(self._pose, (0.0, 0.0), math.hypot(vx, vy), False)
 
 
 def auto_velocity_scale(speeds_m_per_frame, params: NetworkParams = NetworkParams(), target_shift: float = TARGET_SHIFT) -> float:

@@ -1,6 +1,6 @@
 """The loop-closure detector, a pure core: place recognition, the paper's consistency rule, and the
 geometry of a confirmed closure, frame by frame. The loopclosure service and the offline map
-build (services/expmap/offline.py) drive the same object.
+build (services/offline/mapping.py) drive the same object.
 
 Per frame: the view is recognised (`place_recognition`, one of PLACE_RECOGNITIONS):
 
@@ -40,7 +40,7 @@ from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule,
 from services.loopclosure.geometry import ClosureGeometry, Features, GeometryParams, Keyframe
 from services.loopclosure.places import PLACE_RECOGNITIONS, Recognised, recogniser
 from services.loopclosure.templates import ViewMatch
-from services.source.frames import Camera
+from services.common.frames import Camera
 
 GEOMETRIES = ("auto", "scanline", "none")
 MEMORY_KEYFRAMES = 4096   # keyframes kept without a store (the oldest go first)

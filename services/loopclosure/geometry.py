@@ -25,7 +25,7 @@ keyframe's (Hamming distance, Lowe's ratio test, one keyframe feature per curren
   observable: (forward, left) is the unit direction of the translation, ``scaled`` is False,
   and the map takes the length from the odometry.
 
-Conventions (services/egomotion/base.py): camera x right, y down, z forward; body x forward,
+Conventions (services/common/geometry.py): camera x right, y down, z forward; body x forward,
 y left, yaw counter-clockwise. ``RelativePose`` is the current frame's body pose in the
 keyframe's body frame: keyframe_pose ∘ (forward, left, yaw) = current_pose.
 
@@ -47,10 +47,11 @@ import cv2
 import numpy as np
 
 from services.common.errors import ConfigError, DataError
+from services.common.features import TrackParams, track
+from services.common.frames import Camera
+from services.common.geometry import increment_from_transform, invert_transform, transform_from_rt
+from services.common.images import grey
 from services.common.settings import setting
-from services.egomotion.base import grey, increment_from_transform, invert_transform, transform_from_rt
-from services.egomotion.features import TrackParams, track
-from services.source.frames import Camera
 
 log = logging.getLogger(__name__)
 

@@ -34,7 +34,7 @@ from services.loopclosure.keyframes import KeyframeStore, check_file as check_ke
 from services.loopclosure.places import DEFAULT_PLACE_RECOGNITION, PLACE_RECOGNITIONS
 from services.loopclosure.sequence import SequenceParams
 from services.loopclosure.templates import TemplateParams, ViewMatch
-from services.source.frames import Camera
+from services.common.frames import Camera
 
 log = logging.getLogger(__name__)
 

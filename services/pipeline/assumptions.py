@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 from services.common.config import preset_applies
 from services.common.errors import ConfigError
+from services.common.frames import Frame, FrameSource
 from services.egomotion import resolve_estimator
-from services.source.frames import Frame, FrameSource
 
 
 class StageInputError(ConfigError):

@@ -5,5 +5,6 @@ rmw_zenoh.py and graph.py, the node's state in projection.py). messages.py is th
 share (numbers in, CDR bytes out). docs/ecosystem.md.
 
 The ROS bag *source* (reading bags) is services/source/rosbag.py, the live ROS 2 source
-services/source/ros2.py.
+services/source/ros2.py: it reads the ROS 2 wire through messages.py, rmw_zenoh.py, graph.py and
+the graph's settings (graph_settings.py), never the services here.
 """

@@ -39,8 +39,8 @@ from services.common.geometry import planar_from_camera
 from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
+from services.common.odometry import DeadReckoning, turn_first
 from services.common.settings import add_field_flag
-from services.gridcells.integrator import DeadReckoning, turn_first
 from services.ros.messages import (
     ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, TOPICS, MapState, RosMessages, camera_jpeg, typestore,
 )

@@ -35,6 +35,7 @@ import numpy as np
 
 from services.common.observe import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC
 from services.common.errors import ConfigError
+from services.common.images import display_image, encode_camera_jpeg
 
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF = "tf2_msgs/msg/TFMessage"
@@ -142,8 +143,6 @@ class MapState:
 
 def camera_jpeg(pixels: np.ndarray, encoding: str, max_width: int = CAMERA_MAX_WIDTH) -> tuple[bytes, float]:
     """A camera image as JPEG, at most `max_width` wide; and the scale applied to it (for the intrinsics)."""
-    from services.viewer.state import display_image, encode_camera_jpeg
-
     image = display_image(pixels, encoding, max_width)
     return encode_camera_jpeg(image, CAMERA_JPEG_QUALITY), image.shape[1] / pixels.shape[1]
 

@@ -16,25 +16,22 @@ publishers drop rather than block (rmw_zenoh's KEEP_LAST congestion control).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import logging
-import os
 import time
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from schemas import FleetPose, GridActivity, GridPose, MapPose, MapUpdate
 from services.common import topics as gridslam_topics
-from services.common.config import load_config
 from services.common.convert import image_from_msg
-from services.common.errors import ConfigError
 from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.settings import add_field_flag, add_flag, config_fields, params_of
+from services.common.settings import add_field_flag, config_fields
 from services.ros import projection
+from services.ros.graph_settings import add_graph_arguments, graph_flags, graph_params, load_graph_config
 from services.ros.messages import IMAGE, MARKER_ARRAY, ODOMETRY, PATH, POSE_WITH_COVARIANCE, TF, RosMessages, yaw_quaternion
-from services.ros.rmw_zenoh import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TF_QOS, GraphParams, Qos, WireError, normalise_namespace
+from services.ros.rmw_zenoh import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TF_QOS, GraphParams, Qos, normalise_namespace
 
 log = logging.getLogger(__name__)
 
@@ -63,16 +60,6 @@ class _Ros2Fields(BaseModel):
 
 
 Ros2Config = create_model("Ros2Config", __base__=_Ros2Fields, __doc__=_Ros2Fields.__doc__, **config_fields(GraphParams))
-
-
-def graph_params(config) -> GraphParams:
-    """The graph settings of a config, the namespace checked (ConfigError naming it)."""
-    params = params_of(GraphParams, config)
-    try:
-        normalise_namespace(params.ros_namespace)
-    except WireError as error:
-        raise ConfigError(f"[ros2] ros_namespace: {error}") from None
-    return params
 
 
 def session_runtime(runtime: RuntimeConfig) -> RuntimeConfig:
@@ -163,34 +150,6 @@ class Ros2Service(Service):
         if pixels.ndim == 3:
             pixels = pixels.mean(axis=2)
         self._put_ros(self.projection.activity(self._stamp(message), pixels))
-
-
-GRAPH_SETTINGS = tuple(f.name for f in dataclasses.fields(GraphParams))   # their names, for flags and configs
-
-
-def add_graph_arguments(parser: argparse.ArgumentParser) -> None:
-    """--ros-domain-id, --ros-namespace, --ros-distro, --ros2-keys (GraphParams), shared by the
-    service, `gridslam run` and `demo`; defaults None ("not given")."""
-    for name in GRAPH_SETTINGS:
-        add_flag(parser, GraphParams, name)
-
-
-def graph_flags(args) -> dict:
-    return {name: getattr(args, name, None) for name in GRAPH_SETTINGS}
-
-
-def environment_defaults(environ=None) -> dict:
-    """ROS_DOMAIN_ID of the environment, as ROS 2 reads it (a bad value: ConfigError naming it)."""
-    text = (os.environ if environ is None else environ).get("ROS_DOMAIN_ID", "").strip()
-    if not text:
-        return {}
-    if not text.isdigit():
-        raise ConfigError(f"ROS_DOMAIN_ID={text!r} is not a domain id (0-232)")
-    return {"ros_domain_id": int(text)}
-
-
-def load_graph_config(model, args_or_flags: dict, config_file=None):
-    return load_config(model, "ros2", defaults=environment_defaults(), config_file=config_file, overrides=args_or_flags)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

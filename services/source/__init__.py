@@ -2,10 +2,10 @@
 
 The core (this package minus the adapter) is pure: numpy and OpenCV only. Start with
 ``open_source("kitti:PATH", start=0, stop=None, step=1, preset=None, calibration=None)``
-(spec.py); frames are ``frames.Frame``; docs/sources.md describes every source.
+(spec.py); frames are ``services.common.frames.Frame``; docs/sources.md describes every source.
 """
 
-from services.source.frames import Camera, Frame, FrameSource, SourceError
+from services.common.frames import Camera, Frame, FrameSource, SourceError
 from services.source.spec import open_source
 
 __all__ = ["Camera", "Frame", "FrameSource", "SourceError", "open_source"]

@@ -23,7 +23,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from services.common.config import read_toml
-from services.source.frames import Camera, SourceError
+from services.common.frames import Camera, SourceError
 
 # A monocular image folder, video or camera without a calibration gets a pinhole camera with this
 # horizontal field of view (`--fov`, source key `fov`): about a phone's main camera or a webcam

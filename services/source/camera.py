@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterator
 import cv2
 import numpy as np
 
-from services.source.frames import Camera, Frame, SourceError
+from services.common.frames import Camera, Frame, SourceError
 
 log = logging.getLogger(__name__)
 

@@ -16,8 +16,8 @@ from typing import Iterator, Sequence
 import cv2
 import numpy as np
 
+from services.common.frames import Camera, Frame, SourceError
 from services.source.calibration import read_calibration, read_kitti_calibration
-from services.source.frames import Camera, Frame, SourceError
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ its motion from the last one (the dataset's first frame has none of its own).
 `resume_at(seq)` starts at the frame `seq` (the last frame every running service has handled,
 services/source/service.py), in its lap when looping.
 
-Pure: frames in, frames out (services/source/frames.py); no clock, no transport.
+Pure: frames in, frames out (services/common/frames.py); no clock, no transport.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ import dataclasses
 import logging
 from collections.abc import Iterator
 
+from services.common.frames import Frame, FrameSource
 from services.common.geometry import planar_motion
-from services.source.frames import Frame, FrameSource
 
 log = logging.getLogger(__name__)
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from services.source.calibration import DEFAULT_FOV_DEG, assumed_camera
 from services.common.geometry import planar_motion
-from services.source.frames import Camera, Frame, SourceError
+from services.common.frames import Camera, Frame, SourceError
 from services.source.rosbag import (
     CAMERA_INFO_TYPE, IMAGE_TYPES, ODOMETRY_TYPE, camera_from_info, camera_pose_of_planar, decode_image,
     interpolate_planar,

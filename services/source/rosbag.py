@@ -39,7 +39,7 @@ import numpy as np
 
 from services.source.datasets import IndexedSource
 from services.common.geometry import planar_motion
-from services.source.frames import Camera, Frame, SourceError
+from services.common.frames import Camera, Frame, SourceError
 
 log = logging.getLogger(__name__)
 

@@ -45,7 +45,7 @@ from services.common.service import Service
 from services.common.settings import add_field_flag, add_renamed_flag
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
-from services.source.frames import Frame, FrameSource
+from services.common.frames import Frame, FrameSource
 from services.source.laps import Laps
 from services.source.replay import Pacer, ReplayController, ReplayParams, Resend
 from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
@@ -407,7 +407,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_field_flag(parser, SourceConfig, "resume")
     add_world_arguments(parser)
     add_bag_arguments(parser)
-    from services.ros.node import add_graph_arguments
+    from services.ros.graph_settings import add_graph_arguments
 
     add_graph_arguments(parser)
 
@@ -432,7 +432,7 @@ def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
                          topics=bag_settings(config), fov=config.fov)
     graph = None
     if config.source.startswith("ros2:"):
-        from services.ros.node import Ros2Config, graph_flags, graph_params, load_graph_config
+        from services.ros.graph_settings import GraphConfig, graph_flags, graph_params, load_graph_config
 
-        graph = graph_params(load_graph_config(Ros2Config, graph_flags(args), args.config))
+        graph = graph_params(load_graph_config(GraphConfig, graph_flags(args), args.config))
     return SourceService(runtime, config, frames, args.instance, graph=graph).run()

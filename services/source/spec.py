@@ -27,7 +27,7 @@ from typing import Any
 
 from services.common.errors import ConfigError
 from services.source.calibration import CALIBRATION_KEYS, DEFAULT_FOV_DEG, assumed_camera, camera_from_mapping, read_calibration
-from services.source.frames import Camera, FrameSource, SourceError
+from services.common.frames import Camera, FrameSource, SourceError
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag", "ros2")

@@ -38,7 +38,7 @@ import numpy as np
 
 from services.common.errors import ConfigError
 from services.source.datasets import IndexedSource
-from services.source.frames import Camera, Frame
+from services.common.frames import Camera, Frame
 from services.source.world.campus import campus_layout
 from services.source.world.layout import LAMP_SPACING, PILLAR_SIZE
 from services.source.world.route import Route

@@ -38,7 +38,8 @@ from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
 from services.common.settings import add_field_flag
 from services.viewer.config import ViewerConfig
-from services.viewer.state import Cursor, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png
+from services.common.images import display_image, encode_camera_jpeg
+from services.viewer.state import Cursor, ViewerState, encode_lattice_png
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from services.common.geometry import planar_from_camera
-from services.gridcells.integrator import DeadReckoning, turn_first
+from services.common.odometry import DeadReckoning, turn_first
 
 STAGES = ("ground_truth", "egomotion", "grid", "map")
 LATENCY_SAMPLES = 20        # latency shown is the median of the last this many frames
@@ -371,29 +371,6 @@ class ViewerState:
         arrival = self._arrivals.get(seq)
         if arrival is not None and now >= arrival:
             self._latency[stage].append(now - arrival)
-
-
-def display_image(pixels: np.ndarray, encoding: str, max_width: int) -> np.ndarray:
-    """An image as uint8 grey or BGR, at most `max_width` wide (area-averaged), for the page."""
-    if encoding == "rgb8":
-        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
-    elif encoding == "mono16":
-        pixels = (pixels >> 8).astype(np.uint8)
-    elif encoding == "32FC1":
-        finite = np.nan_to_num(pixels.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        low, high = float(finite.min()), float(finite.max())
-        pixels = np.zeros(finite.shape, np.uint8) if high <= low else ((finite - low) * (255.0 / (high - low))).astype(np.uint8)
-    height, width = pixels.shape[:2]
-    if width > max_width:
-        pixels = cv2.resize(pixels, (max_width, max(1, round(height * max_width / width))), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(pixels)
-
-
-def encode_camera_jpeg(image: np.ndarray, quality: int = 80) -> bytes:
-    ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise ValueError("JPEG encoding failed")
-    return data.tobytes()
 
 
 def encode_lattice_png(activity: np.ndarray) -> bytes:

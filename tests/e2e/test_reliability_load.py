@@ -5,7 +5,7 @@ handled: a queue growing anywhere would hold about a megabyte per frame."""
 
 from __future__ import annotations
 
-from services.pipeline.load_bench import growth, measure_load
+from services.benchmarks.load import growth, measure_load
 from tests.netutil import endpoint, free_port
 
 FRAMES = 120

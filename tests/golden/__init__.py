@@ -49,7 +49,7 @@ def figures(name: str, folder: Path, shared_data: Path | None = None) -> dict:
         held["revisit frames joined by a confirmed closure"] = len({f for f, m in closures if loop.is_true(f, m)})
         held["closures between frames the loop does not mark"] = sum(not loop.is_true(f, m) for f, m in closures)
         if shared_data is not None:
-            from services.egomotion.offline import load_reference
+            from services.offline.odometry import load_reference
 
             reference = load_reference(shared_data / LIBVISO2)
             for stage in ("egomotion", "map"):

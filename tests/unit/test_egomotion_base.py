@@ -13,7 +13,7 @@ from services.egomotion import (
     preset_names,
     read_config_file,
 )
-from services.egomotion.base import (
+from services.common.geometry import (
     increment_from_transform,
     invert_transform,
     transform_from_increment,

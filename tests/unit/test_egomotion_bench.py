@@ -4,8 +4,8 @@ from pathlib import Path
 
 import pytest
 
+from services.benchmarks import egomotion as bench
 from services.common.errors import ConfigError
-from services.egomotion import bench
 
 CHECKOUT = Path(__file__).resolve().parents[2]
 

@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.egomotion.features import FeatureParams, TrackParams, bucket_of, detect_bucketed, track
+from services.common.features import FeatureParams, TrackParams, bucket_of, detect_bucketed, track
 from services.benchmarks.box_room import BoxRoom, pinhole
 
 PARAMS = FeatureParams(fast_threshold=20, bucket_size_px=32, features_per_bucket=4, min_distance_px=3)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from services.egomotion import make_estimator
-from services.source.frames import Frame
+from services.common.frames import Frame
 from services.benchmarks.box_room import pinhole, sequence
 
 CAMERA = pinhole(320, 240, fov_deg=70.0)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from services.egomotion import make_estimator
-from services.egomotion.offline import load_reference, odometry, summary_rows
+from services.offline.odometry import load_reference, odometry, summary_rows
 from services.benchmarks.box_room import pinhole, sequence
 from services.evaluation.trajectory import read_tum
 

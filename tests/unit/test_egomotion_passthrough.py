@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from services.egomotion import EgomotionError, make_estimator
-from services.source.frames import Frame
+from services.common.frames import Frame
 from services.benchmarks.box_room import motion_pose
 
 STEPS = [(0.2, 0.01, math.radians(4.0)), (0.3, -0.02, math.radians(-2.0)), (0.1, 0.0, 0.0)]

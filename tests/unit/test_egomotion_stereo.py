@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from services.egomotion import EgomotionError, make_estimator
-from services.egomotion.base import increment_from_transform
+from services.common.geometry import increment_from_transform
 from services.benchmarks.box_room import pinhole, sequence
-from services.source.frames import Camera, Frame
+from services.common.frames import Camera, Frame
 
 CAMERA = pinhole(320, 240, fov_deg=70.0, baseline=0.12)
 PARAMS = {"bucket_size_px": 32}

@@ -338,7 +338,7 @@ def whole_graph_innovation(experience_map: ExperienceMap, index: int) -> float:
 
 
 def test_only_the_junctions_are_in_the_solver_and_frames_between_closures_do_not_touch_it():
-    from services.expmap.bench import map_stream
+    from services.benchmarks.mapping import map_stream
 
     experience_map = ExperienceMap(MapParams())
     updates = []

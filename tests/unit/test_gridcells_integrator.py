@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from services.common.odometry import MotionError
 from services.gridcells.integrator import (
     DeadReckoning,
     GridCellError,
@@ -78,8 +79,8 @@ def test_saturating_speed_is_flagged_and_counted(caplog):
     lambda g: g.step_world(0.1, 0.0, heading=float("nan")),
 ])
 def test_non_finite_input_is_a_clear_error(call):
-    for integrator in (GridCellIntegrator(), DeadReckoning()):
-        with pytest.raises(GridCellError, match="expected a finite number"):
+    for integrator, error in ((GridCellIntegrator(), GridCellError), (DeadReckoning(), MotionError)):
+        with pytest.raises(error, match="expected a finite number"):
             call(integrator)
 
 

@@ -4,8 +4,8 @@ and the fast sub-lattice step against the authors' full-sheet formulation."""
 import numpy as np
 import pytest
 
+from services.benchmarks.gridcells import FullSheetNetwork
 from services.common.errors import ConfigError
-from services.gridcells.bench import FullSheetNetwork
 from services.gridcells.decoders import decode_subpixel
 from services.gridcells.integrator import LATTICE_RATE
 from services.gridcells.network import (

@@ -11,7 +11,7 @@ import pytest
 from services.common.journal import JournalError
 from services.loopclosure.geometry import DISPARITY_STEP, ClosureGeometry, Keyframe, KeyframeError
 from services.loopclosure.keyframes import KeyframeStore
-from services.source.frames import Camera
+from services.common.frames import Camera
 from services.source.synthetic import SyntheticWorld, WorldConfig
 
 CAMERA = Camera(400.0, 400.0, 319.5, 239.5, 0.12, 640, 480)

@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
+from services.benchmarks.loopclosure import make_store, query_frames, random_scenes
 from services.common.config import load_config
-from services.loopclosure.bench import make_store, query_frames, random_scenes
 from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule
 from services.loopclosure.service import LoopClosureConfig
 from services.loopclosure.templates import TemplateParams, ViewTemplates

@@ -12,7 +12,7 @@ import pytest
 
 from services.common.errors import ConfigError
 from services.loopclosure.geometry import ClosureGeometry, GeometryParams, Keyframe
-from services.loopclosure.geometry_bench import NUBOT_CAMERA, direction_error, pose_error, revisits, unrelated
+from services.benchmarks.geometry import NUBOT_CAMERA, direction_error, pose_error, revisits, unrelated
 from services.source.synthetic import SyntheticWorld, WorldConfig
 
 GEOMETRY = ClosureGeometry()

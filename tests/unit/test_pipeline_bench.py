@@ -3,8 +3,8 @@ the same frames through `stereo:FOLDER`, with the camera it was rendered with.""
 
 import numpy as np
 
-from services.pipeline.bench import write_stereo_folder
-from services.source.frames import Camera
+from services.benchmarks.pipeline import write_stereo_folder
+from services.common.frames import Camera
 from services.source.spec import open_source
 
 CAMERA = Camera(fx=120.0, fy=120.0, cx=79.5, cy=59.5, baseline=0.2, width=160, height=120)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from services.gridcells.offline import simulate
+from services.offline.integration import simulate
 from services.gridcells.simulation import WalkParams, autocorrelogram, firing_map, gridness, random_walk
 
 

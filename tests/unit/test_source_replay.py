@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from services.common.geometry import planar_motion
-from services.source.frames import Frame
+from services.common.frames import Frame
 from services.source.laps import Laps
 from services.source.replay import STALL_LOG_PERIOD_S, Pacer, ReplayController, ReplayParams
 from services.source.window import AdaptiveWindow, WindowParams

@@ -19,9 +19,8 @@ from services.common.runtime import RuntimeConfig
 from services.viewer.config import ViewerConfig
 from services.common.service import Subscription
 from services.viewer.service import INBOX_SIZE, ViewerService
-from services.viewer.state import (
-    Cursor, ViewerParams, ViewerState, display_image, encode_camera_jpeg, encode_lattice_png,
-)
+from services.common.images import display_image, encode_camera_jpeg
+from services.viewer.state import Cursor, ViewerParams, ViewerState, encode_lattice_png
 from tests.messages import header, sample_messages
 
 

@@ -19,9 +19,9 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.benchmarks.pipeline import KITTI_CAMERA
 from services.common.settings import CommandParser
 from services.evaluation.results import format_table
-from services.pipeline.bench import KITTI_CAMERA
 from services.pipeline.runner import RunConfig, run_pipeline
 from services.source.calibration import write_calibration
 from services.source.spec import PRESET_DIR

@@ -1,6 +1,6 @@
-"""What every source yields: frames with a sequence number, a time, images and, when the data
-has them, ground truth and odometry. Pure data types: no I/O here (datasets.py, camera.py and
-synthetic.py produce them)."""
+"""What every source yields and every stage reads: frames with a sequence number, a time, images
+and, when the data has them, ground truth and odometry. Pure data types: no I/O here (the
+source's datasets.py, camera.py and synthetic.py produce them)."""
 
 from __future__ import annotations
 

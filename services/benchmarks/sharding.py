@@ -10,10 +10,10 @@ import statistics
 import tempfile
 from pathlib import Path
 
+from services.benchmarks.pipeline import free_port
 from services.common.settings import CommandParser
 from services.common.stages import INTEGRATORS
 from services.evaluation.results import format_table
-from services.pipeline.bench import free_port
 from services.pipeline.runner import RunConfig, run_pipeline
 
 NUBOT = Path("../shared/data/nubot_scene1")

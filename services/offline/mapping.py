@@ -34,8 +34,8 @@ from services.expmap.export import corrected_trajectory, graph_dict, odometry_tr
 from services.expmap.graph import ExperienceMap, MapParams, MapState
 from services.expmap.links import ClosureInput, Link
 from services.expmap.store import MapStore, Step
-from services.gridcells.offline import run_deadreckoning, run_grid
 from services.loopclosure.detector import Confirmed, LoopClosureDetector
+from services.offline.integration import run_deadreckoning, run_grid
 
 log = logging.getLogger(__name__)
 

@@ -12,11 +12,11 @@ import statistics
 import tempfile
 from pathlib import Path
 
+from services.common.frames import Camera
 from services.common.settings import CommandParser
 from services.evaluation.results import format_table
 from services.pipeline.runner import RunConfig, run_pipeline
 from services.source.calibration import write_calibration
-from services.source.frames import Camera
 from services.source.spec import open_source
 
 # KITTI odometry sequence 00's left camera (P0) and stereo baseline, at its 1241×376 image size.

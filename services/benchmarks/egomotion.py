@@ -35,7 +35,10 @@ import numpy as np
 
 from services.common.errors import ConfigError
 from services.egomotion import ESTIMATORS, make_estimator
-from services.source.frames import Frame
+try:
+    from services.common.frames import Frame
+except ImportError:   # a --reference checkout from before the frames moved out of services/source
+    from services.source.frames import Frame
 try:
     from services.benchmarks.box_room import BoxRoom, motion_pose, pinhole
 except ImportError:   # a --reference checkout from before the room moved out of services/egomotion

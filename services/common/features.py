@@ -1,5 +1,5 @@
 """Feature detection with bucketing and pyramidal Lucas–Kanade tracking, shared by the stereo
-and mono estimators.
+and mono estimators and the loop closure's geometry.
 
 Bucketing follows LIBVISO2 (Geiger, Ziegler & Stiller, "StereoScan: Dense 3d reconstruction
 in real-time", IV 2011, Sec. III-A): the image is divided into square buckets and only the

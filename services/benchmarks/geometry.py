@@ -24,9 +24,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from services.common.frames import Camera
 from services.common.settings import CommandParser
 from services.loopclosure.geometry import ClosureGeometry
-from services.source.frames import Camera
 from services.source.synthetic import SyntheticWorld, WorldConfig, default_camera
 
 NUBOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "nubot_scene1"

@@ -39,7 +39,8 @@ from services.common.runtime import RuntimeConfig, open_session
 from services.common.settings import CommandParser
 from services.viewer.config import ViewerConfig
 from services.viewer.service import ViewerService
-from services.viewer.state import Cursor, encode_camera_jpeg, encode_lattice_png
+from services.common.images import encode_camera_jpeg
+from services.viewer.state import Cursor, encode_lattice_png
 
 
 def median_us(call, repeats: int) -> tuple[float, float]:
