@@ -51,7 +51,9 @@ def test_instances_share_blocks_and_one_takes_over_what_the_other_estimated(fram
             wait_for(lambda: any(r.ok for r in client.liveliness().get(topics.health_key("robot0", "egomotion", name),
                                                                        timeout=1)), timeout=30)
         publisher = client.declare_publisher(topics.key("robot0", "camera/frame"),
-                                             encoding=zenoh.Encoding(codec.encoding_of(CameraFrame)))
+                                             encoding=zenoh.Encoding(codec.encoding_of(CameraFrame)),
+                                             congestion_control=zenoh.CongestionControl.BLOCK,
+                                             reliability=zenoh.Reliability.RELIABLE)
         wait_for(lambda: publisher.matching_status.matching)   # the subscribers are known: no frame is dropped
 
         def by_seq() -> dict[int, list[EgoMotion]]:
@@ -141,8 +143,11 @@ def test_a_restarted_instance_rebuilds_its_block_from_the_acknowledged_frames_se
             return {seq: messages[-1] for seq, messages in published.items()}
 
     subscriber = client.declare_subscriber(topics.key("robot0", "egomotion"), on_egomotion)
+    # As the source sends them: reliable, and blocking rather than dropping while the instance is busy.
     publisher = client.declare_publisher(topics.key("robot0", "camera/frame"),
-                                         encoding=zenoh.Encoding(codec.encoding_of(CameraFrame)))
+                                         encoding=zenoh.Encoding(codec.encoding_of(CameraFrame)),
+                                         congestion_control=zenoh.CongestionControl.BLOCK,
+                                         reliability=zenoh.Reliability.RELIABLE)
     try:
         uninterrupted = run(frames)
         # Acknowledged up to frame 149 when egomotion died: 150–155 were in flight. 150 is the
