@@ -3,7 +3,9 @@ and subprocesses of the real command line that are always cleaned up."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -76,3 +78,38 @@ def stop(process: subprocess.Popen, timeout: float = 5.0) -> tuple[int, str, str
         process.kill()
         out, err = process.communicate()
     return process.returncode, out, err
+
+
+def ip(*args: str) -> None:
+    subprocess.run(["ip", *args], check=True, capture_output=True, text=True)
+
+
+@contextlib.contextmanager
+def veth_namespaces(names: tuple[str, str], devices: tuple[str, str], subnet: str):
+    """Two network namespaces joined by a veth pair, `subnet`.1 in the first and `subnet`.2 in the
+    second (a /24); yields the namespaces' names (each given a random suffix). Skips the test where
+    namespaces cannot be made (not root, no iproute2); removes them afterwards."""
+    import uuid
+
+    import pytest
+
+    if os.geteuid() != 0 or shutil.which("ip") is None:
+        pytest.skip("needs root and iproute2 to make network namespaces")
+    tag = uuid.uuid4().hex[:6]
+    first, second = (f"{name}-{tag}" for name in names)
+    try:
+        ip("netns", "add", first)
+        ip("netns", "add", second)
+    except subprocess.CalledProcessError as error:
+        pytest.skip(f"cannot make network namespaces here: {error.stderr.strip()}")
+    try:
+        ip("link", "add", f"{devices[0]}{tag}", "netns", first, "type", "veth", "peer", "name", f"{devices[1]}{tag}",
+            "netns", second)
+        for ns, dev, address in ((first, f"{devices[0]}{tag}", f"{subnet}.1/24"), (second, f"{devices[1]}{tag}", f"{subnet}.2/24")):
+            ip("-n", ns, "addr", "add", address, "dev", dev)
+            ip("-n", ns, "link", "set", dev, "up")
+            ip("-n", ns, "link", "set", "lo", "up")
+        yield first, second, f"{devices[1]}{tag}"
+    finally:
+        for ns in (first, second):
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)

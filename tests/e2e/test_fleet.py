@@ -7,12 +7,10 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import pytest
@@ -21,7 +19,7 @@ from services.common.journal import read_records
 from services.expmap.export import read_log
 from services.pipeline.fleet import evaluate_fleet
 from services.pipeline.runner import RunConfig
-from tests.netutil import REPO, endpoint, free_port, start, stop, wait_for
+from tests.netutil import REPO, endpoint, free_port, ip, start, stop, veth_namespaces, wait_for
 
 
 def fleetmap_pid(out: Path) -> int | None:
@@ -87,33 +85,12 @@ def places_of(folder: Path) -> set[int]:
     return {r["template"] for r in read_records(folder / "view_templates.log")[0][1:] if r.get("new")}
 
 
-def ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, text=True)
-
-
 @pytest.fixture
 def two_sites():
     """Namespaces joined by a veth pair, 10.232.0.1 (site A) and 10.232.0.2 (site B); yields them
     and the link's device in B, which a test sets down to cut the sites apart."""
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        pytest.skip("needs root and iproute2 to make network namespaces")
-    tag = uuid.uuid4().hex[:6]
-    site_a, site_b = f"gs-fa-{tag}", f"gs-fb-{tag}"
-    try:
-        ip("netns", "add", site_a)
-        ip("netns", "add", site_b)
-    except subprocess.CalledProcessError as error:
-        pytest.skip(f"cannot make network namespaces here: {error.stderr.strip()}")
-    try:
-        ip("link", "add", f"gfa{tag}", "netns", site_a, "type", "veth", "peer", "name", f"gfb{tag}", "netns", site_b)
-        for ns, dev, address in ((site_a, f"gfa{tag}", "10.232.0.1/24"), (site_b, f"gfb{tag}", "10.232.0.2/24")):
-            ip("-n", ns, "addr", "add", address, "dev", dev)
-            ip("-n", ns, "link", "set", dev, "up")
-            ip("-n", ns, "link", "set", "lo", "up")
-        yield site_a, site_b, f"gfb{tag}"
-    finally:
-        for ns in (site_a, site_b):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+    with veth_namespaces(("gs-fa", "gs-fb"), ("gfa", "gfb"), "10.232.0") as sites:
+        yield sites
 
 
 def in_ns(ns: str, args: list[str], log: Path) -> subprocess.Popen:

@@ -2,15 +2,12 @@
 namespaces joined by a veth pair (test hosts of our own), and a client that knows only Zenoh and
 msgpack following map/pose while a run goes on."""
 
-import os
-import shutil
 import subprocess
 import sys
-import uuid
 
 import pytest
 
-from tests.netutil import REPO, endpoint, free_port, port_open, wait_for
+from tests.netutil import REPO, endpoint, free_port, port_open, veth_namespaces, wait_for
 
 GRIDSLAM = [sys.executable, "-m", "services.cli"]
 CLIENT = REPO / "examples" / "pose_client.py"
@@ -36,32 +33,11 @@ def test_external_client_follows_map_pose_during_a_run(tmp_path):
             run.kill()
 
 
-def ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, text=True)
-
-
 @pytest.fixture
 def two_hosts():
     """Namespaces `router` and `robot` joined by a veth pair, 10.231.0.1 and 10.231.0.2."""
-    if os.geteuid() != 0 or shutil.which("ip") is None:
-        pytest.skip("needs root and iproute2 to make network namespaces")
-    tag = uuid.uuid4().hex[:6]
-    router_ns, robot_ns = f"gs-router-{tag}", f"gs-robot-{tag}"
-    try:
-        ip("netns", "add", router_ns)
-        ip("netns", "add", robot_ns)
-    except subprocess.CalledProcessError as error:
-        pytest.skip(f"cannot make network namespaces here: {error.stderr.strip()}")
-    try:
-        ip("link", "add", f"gsr{tag}", "netns", router_ns, "type", "veth", "peer", "name", f"gsb{tag}", "netns", robot_ns)
-        for ns, dev, address in ((router_ns, f"gsr{tag}", "10.231.0.1/24"), (robot_ns, f"gsb{tag}", "10.231.0.2/24")):
-            ip("-n", ns, "addr", "add", address, "dev", dev)
-            ip("-n", ns, "link", "set", dev, "up")
-            ip("-n", ns, "link", "set", "lo", "up")
+    with veth_namespaces(("gs-router", "gs-robot"), ("gsr", "gsb"), "10.231.0") as (router_ns, robot_ns, _):
         yield router_ns, robot_ns
-    finally:
-        for ns in (router_ns, robot_ns):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
 def test_services_on_another_host_than_the_router(two_hosts, tmp_path):
