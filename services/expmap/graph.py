@@ -336,17 +336,10 @@ class ExperienceMap:
         which it joins: the graph is rebuilt at the moved poses, the part's prior made weak."""
         members = np.flatnonzero(np.array(self.parts) == part)
         state = self.state()
-        rows = {"poses": members}
-        if "junctions" in state:   # the pose graph's estimates, of its junctions (optimizers.PoseGraph)
-            rows["theta"] = np.flatnonzero(np.isin(state["junctions"], members))
-        for key, moved in rows.items():
-            for row in moved.tolist():
-                state[key][row] = compose(transform, tuple(state[key][row]))
-        if "part_priors" in state:   # the part's prior goes with it, weak: the closures hold it now
-            for row in state["part_priors"]:
-                if int(row[0]) == self.anchors[part]:
-                    row[1:4] = compose(transform, tuple(row[1:4]))
-                    row[4] = JOINED_PRIOR_SIGMA
+        for index in members.tolist():
+            state["poses"][index] = compose(transform, tuple(state["poses"][index]))
+        # The optimiser's own state moves with them, the part's prior weak: the closures hold it now.
+        self.optimizer.move_part(state, members, self.anchors[part], transform, JOINED_PRIOR_SIGMA)
         for index in members.tolist():
             self._poses[index] = state["poses"][index]
             self.parts[index] = into
@@ -382,6 +375,11 @@ class ExperienceMap:
         """(frame, x, y, heading) of every frame, placed on the final map (`final_poses`)."""
         poses = self.final_poses()
         return [(frame, *compose(tuple(poses[experience]), offset)) for frame, experience, offset in self.frames]
+
+    def place(self, keys: np.ndarray, poses: np.ndarray) -> None:
+        """The optimiser's estimates `poses` (K, 3) of the experiences `keys` become their
+        published poses (optimizers.PlacedMap)."""
+        self._poses[keys] = poses
 
     def final_poses(self) -> np.ndarray:
         """Every experience's best estimate (E, 3); costs a pass over the map (for exports, not per frame)."""

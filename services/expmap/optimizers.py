@@ -38,8 +38,8 @@
   over its links, so the result does not depend on link order and the vectorised update is
   stable. Every closure is accepted (the paper's model); a pass costs one sweep over all links.
 
-Both write the map's published poses (ExperienceMap._poses) and report which experiences moved,
-and both can be rebuilt from the map's state (`state`, `rebuild`: ExperienceMap.rebase). The pose
+Both see of the map what `PlacedMap` names (graph.ExperienceMap is one), publish its poses
+through its `place` and report which experiences moved (beyond links.MOVED), and both can be rebuilt from the map's state (`state`, `rebuild`: ExperienceMap.rebase). The pose
 graph is rebuilt as a fresh iSAM2 given every factor the graph holds (the priors, the chains' as
 they were linearised, the accepted closures under their kernel) with the junctions at the
 estimates they had, in a few updates, oldest first; the chains are made again from the links.
@@ -48,6 +48,7 @@ estimates they had, in a few updates, oldest first; the chains are made again fr
 from __future__ import annotations
 
 import bisect
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -69,8 +70,25 @@ PLACEMENT_ITERATIONS = 2    # Gauss–Newton steps of a chain's least squares (P
 BULK_ESTIMATE = 64          # junction estimates read from the solver one by one up to this many, else all at once
 
 
+class PlacedMap(Protocol):
+    """What an optimiser sees of the map it places: its parameters (graph.MapParams), its links
+    in order, its experiences (len), the current one and the published poses, which it changes
+    only through `place`."""
+
+    params: Any
+    links: list[Link]
+    current: int | None
+
+    def __len__(self) -> int: ...
+
+    @property
+    def poses(self) -> np.ndarray: ...
+
+    def place(self, keys: np.ndarray, poses: np.ndarray) -> None: ...
+
+
 class PoseGraph:
-    def __init__(self, experience_map):   # the map it places (graph.ExperienceMap)
+    def __init__(self, experience_map: PlacedMap):
         import gtsam  # imported here: the ratslam optimiser and the map's readers need no gtsam
 
         self.gtsam = gtsam
@@ -435,6 +453,18 @@ class PoseGraph:
                 "refresh": np.array(sorted(self._refresh.union(pending)), dtype=np.int64),   # the next update would mark them
                 "refresh_cursor": np.array(self._cursor, dtype=np.int64)}
 
+    def move_part(self, state: dict[str, np.ndarray], members: np.ndarray, anchor: int,
+                  transform: tuple[float, float, float], sigma: float) -> None:
+        """In `state` (as `state` gave it, for `rebuild`): the junctions among `members` moved by
+        `transform`, and the prior of their part's first experience (`anchor`) with them, its
+        standard deviation now `sigma`."""
+        for row in np.flatnonzero(np.isin(state["junctions"], members)).tolist():
+            state["theta"][row] = compose(transform, tuple(state["theta"][row]))
+        for row in state["part_priors"]:
+            if int(row[0]) == anchor:
+                row[1:4] = compose(transform, tuple(row[1:4]))
+                row[4] = sigma
+
     def rebuild(self, state: dict[str, np.ndarray]) -> None:
         """A fresh iSAM2 holding the graph `state` and the map's links describe, given to it in
         REBUILD_PARTS updates, oldest experiences first. (In one update it would order the whole
@@ -538,10 +568,9 @@ class PoseGraph:
         # The current experience too: the experiences made until the next solve are composed from it.
         keys = np.unique(np.concatenate([self._chains_at(self._refresh), window, [self.map.current]]))
         self._refresh.clear()
-        poses = self.map._poses
         estimates = self._poses_of(keys)
-        moved = keys[(np.abs(poses[keys] - estimates) > MOVED).any(axis=1)]
-        poses[keys] = estimates
+        moved = keys[(np.abs(self.map.poses[keys] - estimates) > MOVED).any(axis=1)]
+        self.map.place(keys, estimates)
         return moved.tolist()
 
     def _chains_of(self, junctions) -> np.ndarray:
@@ -650,7 +679,7 @@ def _chain_poses(steps: np.ndarray) -> np.ndarray:
 
 
 class Relaxation:
-    def __init__(self, experience_map):   # the map it places (graph.ExperienceMap)
+    def __init__(self, experience_map: PlacedMap):
         self.map = experience_map
         self._clear()
 
@@ -686,6 +715,10 @@ class Relaxation:
     def state(self) -> dict[str, np.ndarray]:
         return {}   # the map's poses and links are all there is
 
+    def move_part(self, state: dict[str, np.ndarray], members: np.ndarray, anchor: int,
+                  transform: tuple[float, float, float], sigma: float) -> None:
+        pass   # the map's poses are all it places
+
     def rebuild(self, state: dict[str, np.ndarray]) -> None:
         self._clear()
         for index in range(len(self.map)):
@@ -703,7 +736,7 @@ class Relaxation:
         """`passes` relaxation passes over every link."""
         if not self._count or passes <= 0:
             return
-        poses = self.map.poses   # a view: relaxed in place
+        poses = self.map.poses.copy()
         source, target, offset = self._source[:self._count], self._target[:self._count], self._offset[:self._count]
         degree = np.maximum(self._degree[:len(poses)], 1.0)[:, None]
         correction = self.map.params.correction
@@ -721,6 +754,7 @@ class Relaxation:
             np.add.at(pull, source, -error * correction)
             poses += pull / degree
             poses[:, 2] = wrap(poses[:, 2])
+        self.map.place(np.arange(len(poses)), poses)
 
     def estimate(self) -> np.ndarray:
         return self.map.poses.copy()
