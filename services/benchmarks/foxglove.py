@@ -54,7 +54,7 @@ def relay_cost(messages: int, via_relay: bool) -> float:
     """Seconds from the first message logged to the last one received."""
     import foxglove
 
-    from services.ros.messages import TOPICS, RosMessages
+    from services.ros2wire.messages import TOPICS, RosMessages
     from services.ros.ws_relay import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL, SubprotocolRelay
 
     ros = RosMessages()

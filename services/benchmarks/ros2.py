@@ -48,8 +48,8 @@ def latency(session, endpoint: str, messages: int, rate: float) -> list[float]:
     from schemas import GridPose, Header, Time
     from services.common import codec, topics
     from services.common.convert import planar_pose
-    from services.ros.messages import RosMessages
-    from services.ros.rmw_zenoh import topic_key
+    from services.ros2wire.messages import RosMessages
+    from services.ros2wire.rmw_zenoh import topic_key
 
     ros = RosMessages("jazzy")
     sent: dict[int, float] = {}
@@ -89,9 +89,9 @@ def latency(session, endpoint: str, messages: int, rate: float) -> list[float]:
 def live_source(session, endpoint: str, frames: int, fps: float) -> dict:
     from schemas import CameraFrame, ServiceStatus
     from services.common import codec, topics
-    from services.ros.graph import RosNode
-    from services.ros.messages import RosMessages
-    from services.ros.rmw_zenoh import SENSOR_QOS
+    from services.ros2wire.graph import RosNode
+    from services.ros2wire.messages import RosMessages
+    from services.ros2wire.rmw_zenoh import SENSOR_QOS
 
     ros = RosMessages("jazzy")
     received = []

@@ -16,7 +16,7 @@ from services.common.stages import ESTIMATORS, STEP_SOURCES, GridStageParams
 from services.expmap.service import add_map_arguments
 from services.pipeline.fleet import add_fleet_arguments
 from services.loopclosure.service import add_place_recognition_argument
-from services.ros.graph_settings import add_graph_arguments, graph_flags
+from services.ros2wire.graph_settings import add_graph_arguments, graph_flags
 from services.source.calibration import OPTIONAL_KEYS, REQUIRED_KEYS
 from services.source.service import add_fov_argument
 from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags

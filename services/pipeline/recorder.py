@@ -18,7 +18,7 @@ from services.common import codec, health, topics
 from services.common.convert import heading_of, image_from_msg, pose_to_matrix
 from services.common.observe import map_items
 from services.common.runtime import RuntimeConfig, open_session
-from services.ros.messages import camera_jpeg
+from services.ros2wire.messages import camera_jpeg
 
 log = logging.getLogger(__name__)
 

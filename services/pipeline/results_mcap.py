@@ -19,7 +19,7 @@ from services.expmap.export import read_log
 from services.expmap.graph import ExperienceMap
 from services.pipeline.runner import ASSUMED, RunConfig
 from services.ros.mcap_export import MARKER_PERIOD_S, MCAP_NAME, STAGE_FILES, RunContent, write_run_mcap
-from services.ros.messages import CAMERA_MAX_WIDTH, camera_jpeg
+from services.ros2wire.messages import CAMERA_MAX_WIDTH, camera_jpeg
 from services.source.spec import bag_settings, open_source
 
 log = logging.getLogger(__name__)

@@ -45,7 +45,7 @@ from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
 from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
-from services.ros.rmw_zenoh import GraphParams
+from services.ros2wire.rmw_zenoh import GraphParams
 from services.source.service import SourceConfig
 from services.source.spec import bag_settings, open_source
 

@@ -41,7 +41,7 @@ from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
 from services.common.odometry import DeadReckoning, turn_first
 from services.common.settings import add_field_flag
-from services.ros.messages import (
+from services.ros2wire.messages import (
     ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, TOPICS, MapState, RosMessages, camera_jpeg, typestore,
 )
 from services.ros.ws_relay import SubprotocolRelay

@@ -22,7 +22,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from services.evaluation.trajectory import Trajectory
-from services.ros.messages import (
+from services.ros2wire.messages import (
     ROUTE_TOPIC, TOPICS, MapState, RosMessages, RosUnavailable, stamp_ns,
 )
 

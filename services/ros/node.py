@@ -29,9 +29,9 @@ from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import add_field_flag, config_fields
 from services.ros import projection
-from services.ros.graph_settings import add_graph_arguments, graph_flags, graph_params, load_graph_config
-from services.ros.messages import IMAGE, MARKER_ARRAY, ODOMETRY, PATH, POSE_WITH_COVARIANCE, TF, RosMessages, yaw_quaternion
-from services.ros.rmw_zenoh import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TF_QOS, GraphParams, Qos, normalise_namespace
+from services.ros2wire.graph_settings import add_graph_arguments, graph_flags, graph_params, load_graph_config
+from services.ros2wire.messages import IMAGE, MARKER_ARRAY, ODOMETRY, PATH, POSE_WITH_COVARIANCE, TF, RosMessages, yaw_quaternion
+from services.ros2wire.rmw_zenoh import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, TF_QOS, GraphParams, Qos, normalise_namespace
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +64,7 @@ Ros2Config = create_model("Ros2Config", __base__=_Ros2Fields, __doc__=_Ros2Field
 
 def session_runtime(runtime: RuntimeConfig) -> RuntimeConfig:
     """The runtime with what ROS 2 publishers need of the session (graph.SESSION_CFG) under the user's settings."""
-    from services.ros.graph import SESSION_CFG
+    from services.ros2wire.graph import SESSION_CFG
 
     return runtime.model_copy(update={"cfg": {**SESSION_CFG, **runtime.cfg}})
 
@@ -84,7 +84,7 @@ class Ros2Service(Service):
         self.publishers = {}
 
     def setup(self) -> None:
-        from services.ros.graph import RosNode
+        from services.ros2wire.graph import RosNode
 
         p = self.params
         self.node = RosNode(self.session, NODE_NAME, normalise_namespace(p.ros_namespace), p.ros_domain_id,

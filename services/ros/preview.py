@@ -16,7 +16,7 @@ import numpy as np
 
 from services.common.settings import CommandParser
 from services.evaluation import plots
-from services.ros.messages import ACTIVITY_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, STAGES, typestore
+from services.ros2wire.messages import ACTIVITY_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, STAGES, typestore
 
 STYLE = {"groundtruth": ("k", "--", "ground truth"), "egomotion": ("#9a9fa6", "-", "ego-motion"),
          "gridcells": ("#1f6fd1", "-", "grid cells"), "map": ("#1a9a4b", "-", "map")}

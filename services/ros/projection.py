@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common.geometry import between, compose
-from services.ros.messages import MapState, RosMessages, planar_covariance_6x6, yaw_quaternion
+from services.ros2wire.messages import MapState, RosMessages, planar_covariance_6x6, yaw_quaternion
 
 ODOM_FRAME, BASE_FRAME, MAP_FRAME, GRID_FRAME = "odom", "base_link", "map", "grid"
 # Topic names, relative to the node's namespace (absolute ones stay).

@@ -61,7 +61,7 @@ class Ros2Source:
                  fov: float | None = None):
         if start < 0 or (stop is not None and stop <= start) or step < 1:
             raise SourceError(f"ros2:{topic}: invalid frame selection start={start} stop={stop} step={step}")
-        from services.ros.messages import typestore
+        from services.ros2wire.messages import typestore
 
         self.store = typestore()   # (Image, CameraInfo and Odometry read the same in every distribution)
         self.name = f"ros2:{topic}"

@@ -214,9 +214,9 @@ class SourceService(Service):
 
     def _listen_to_ros2(self) -> None:
         """A ros2: source: subscribe to its topics as the node `source` of the ROS 2 graph (graph.py)."""
-        from services.ros.graph import RosNode
-        from services.ros.messages import RosMessages
-        from services.ros.rmw_zenoh import RELIABLE_QOS, SENSOR_QOS, WireError, normalise_namespace, parse_attachment
+        from services.ros2wire.graph import RosNode
+        from services.ros2wire.messages import RosMessages
+        from services.ros2wire.rmw_zenoh import RELIABLE_QOS, SENSOR_QOS, WireError, normalise_namespace, parse_attachment
 
         p = self.graph
         ros = RosMessages(p.ros_distro)
@@ -407,7 +407,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_field_flag(parser, SourceConfig, "resume")
     add_world_arguments(parser)
     add_bag_arguments(parser)
-    from services.ros.graph_settings import add_graph_arguments
+    from services.ros2wire.graph_settings import add_graph_arguments
 
     add_graph_arguments(parser)
 
@@ -432,7 +432,7 @@ def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
                          topics=bag_settings(config), fov=config.fov)
     graph = None
     if config.source.startswith("ros2:"):
-        from services.ros.graph_settings import GraphConfig, graph_flags, graph_params, load_graph_config
+        from services.ros2wire.graph_settings import GraphConfig, graph_flags, graph_params, load_graph_config
 
         graph = graph_params(load_graph_config(GraphConfig, graph_flags(args), args.config))
     return SourceService(runtime, config, frames, args.instance, graph=graph).run()

@@ -41,7 +41,7 @@ from websockets.sync.client import connect   # noqa: E402
 
 from services.evaluation.trajectory import read_tum   # noqa: E402
 from services.source import open_source   # noqa: E402
-from services.ros.messages import TOPICS   # noqa: E402
+from services.ros2wire.messages import TOPICS   # noqa: E402
 from tests import npm_foxglove   # noqa: E402
 from tests.bags import ODOM, image_topic, write_bag   # noqa: E402
 from tests.browser import Browser, chromium_and_driver   # noqa: E402

@@ -86,7 +86,7 @@ def test_the_runs_ros2_graph_settings_are_graphparams_declared_once(tmp_path):
     import dataclasses
 
     from services.pipeline.runner import RunConfig, graph_args
-    from services.ros.rmw_zenoh import DISTROS, KEY_STYLES, GraphParams
+    from services.ros2wire.rmw_zenoh import DISTROS, KEY_STYLES, GraphParams
 
     names = [f.name for f in dataclasses.fields(GraphParams)]
     for f in dataclasses.fields(GraphParams):   # derived: GraphParams' help, its default named

@@ -1,4 +1,4 @@
-"""rmw_zenoh's wire format (services/ros/rmw_zenoh.py) against rmw_zenoh's own examples and
+"""rmw_zenoh's wire format (services/ros2wire/rmw_zenoh.py) against rmw_zenoh's own examples and
 ROS 2's own code: the keys and tokens of rmw_zenoh's docs/design.md (kilted 0.6.x and rolling;
 jazzy 0.2.x has the same), the RIHS01 hashes of rosidl's type-description files (the
 `ros-kilted-*` wheels) and of rosbags, the attachment as Zenoh's deserializer reads it, and
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.ros import rmw_zenoh
-from services.ros.rmw_zenoh import Qos, WireError
+from services.ros2wire import rmw_zenoh
+from services.ros2wire.rmw_zenoh import Qos, WireError
 from tests.extras import require
 
 require("rosbags", "ros")
@@ -139,7 +139,7 @@ def test_type_hashes_equal_rosidls_and_rosbags(distro, tmp_path):
     require("rosidl_generator_type_description", "test")
     from rosbags.typesys import Stores, get_typestore
 
-    from services.ros.messages import RosMessages
+    from services.ros2wire.messages import RosMessages
 
     ros = RosMessages(distro)
     kilted = get_typestore(Stores.ROS2_KILTED)
@@ -168,7 +168,7 @@ def test_every_published_message_parses_in_rclpy_into_what_was_sent(rclpy_serial
     from visualization_msgs.msg import MarkerArray
 
     from services.ros import projection
-    from services.ros.messages import MapState, RosMessages
+    from services.ros2wire.messages import MapState, RosMessages
 
     deserialize = rclpy_serialization
     ros = RosMessages("kilted")
@@ -221,7 +221,7 @@ def test_every_published_message_parses_in_rclpy_into_what_was_sent(rclpy_serial
 def test_tf_messages_hold_the_transforms_sent():
     # tf2_msgs has no wheel on PyPI, so rclpy cannot load its type: rosbags' reader (a CDR
     # decoder of its own) reads it here, and zenoh-ros2-sdk's in the end-to-end test.
-    from services.ros.messages import RosMessages
+    from services.ros2wire.messages import RosMessages
 
     ros = RosMessages("jazzy")
     data = ros.transforms(42, [("map", "odom", (1.0, 2.0, 0.0), (0.0, 0.0, 0.6, 0.8)),

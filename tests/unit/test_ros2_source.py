@@ -14,7 +14,7 @@ from tests.extras import require
 
 require("rosbags", "ros")
 
-from services.ros.messages import RosMessages   # noqa: E402
+from services.ros2wire.messages import RosMessages   # noqa: E402
 from services.source.ros2 import Ros2Source   # noqa: E402
 
 KEY = "0/cam/image_raw/sensor_msgs::msg::dds_::Image_/H"

@@ -20,7 +20,7 @@ from mcap_ros2.decoder import DecoderFactory   # noqa: E402
 from services.evaluation.trajectory import Trajectory   # noqa: E402
 from services.ros.mcap_export import MARKER_PERIOD_S, RunContent, write_run_mcap   # noqa: E402
 from services.common.observe import CLOSURE_KEPT, CLOSURE_REFUSED, ODOMETRIC   # noqa: E402
-from services.ros.messages import STAGES, TOPICS, MapState   # noqa: E402
+from services.ros2wire.messages import STAGES, TOPICS, MapState   # noqa: E402
 
 FRAMES = 30
 FPS = 10.0
@@ -149,7 +149,7 @@ def test_a_run_without_the_extra_writes_no_mcap_and_says_so(monkeypatch, tmp_pat
 
     from services.pipeline.recorder import Recording
     from services.ros import mcap_export
-    from services.ros.messages import RosUnavailable
+    from services.ros2wire.messages import RosUnavailable
 
     def unavailable(*args, **kwargs):
         raise RosUnavailable("ROS messages need the optional extra 'ros': pip install 'gridslam[ros]'")

@@ -12,7 +12,7 @@ require("rosbags", "ros")
 
 from services.common.geometry import between, compose  # noqa: E402
 from services.ros import projection  # noqa: E402
-from services.ros.messages import RosMessages  # noqa: E402
+from services.ros2wire.messages import RosMessages  # noqa: E402
 
 # A small map's life: frames 0-2 on experience 0, frame 3 on a new experience 1; at frame 4 a
 # closure moves both experiences, and frame 4's pose is placed on experience 0 as moved.

@@ -27,7 +27,7 @@ from websockets.sync.client import connect  # noqa: E402
 
 from services.common.runtime import RuntimeConfig  # noqa: E402
 from services.ros.foxglove import FoxgloveConfig, FoxgloveService, RunHistory  # noqa: E402
-from services.ros.messages import MARKERS_TOPIC  # noqa: E402
+from services.ros2wire.messages import MARKERS_TOPIC  # noqa: E402
 from services.ros.ws_relay import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL, Head, SubprotocolRelay, choose_subprotocol  # noqa: E402
 
 

@@ -14,7 +14,7 @@ from pydantic import ConfigDict, create_model
 from services.common.config import load_config
 from services.common.errors import ConfigError
 from services.common.settings import add_flag, config_fields, params_of
-from services.ros.rmw_zenoh import GraphParams, WireError, normalise_namespace
+from services.ros2wire.rmw_zenoh import GraphParams, WireError, normalise_namespace
 
 # The graph's keys of [ros2] (GRIDSLAM_ROS2_*), for a reader of the graph alone (the ros2:
 # source); the table's other keys are the ros2 service's, which checks them.

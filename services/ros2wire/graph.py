@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import zenoh
 import zenoh.ext
 
-from services.ros import rmw_zenoh
-from services.ros.rmw_zenoh import Qos, WireError
+from services.ros2wire import rmw_zenoh
+from services.ros2wire.rmw_zenoh import Qos, WireError
 
 log = logging.getLogger(__name__)
 
