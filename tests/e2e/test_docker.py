@@ -40,8 +40,8 @@ IMAGE = "gridslam:latest"                   # the image docker-compose.yml and d
 BASE = "python:3.11-slim"                   # the Dockerfile's default base
 STAND_IN = "gridslam/python:3.11-bookworm"  # deploy/base-image.sh's, where Docker Hub is out of reach
 PROJECT = "gridslamtest"                    # compose project and stack name: nothing of a user's is touched
-# The image above its base (docs/deploy.md, "What the image weighs"): 322 MB with the map's pose
-# graph (gtsam), 445 MB in all on the stand-in's 123 MB.
+# The image above its base (docs/deploy.md, "What the image weighs"): 326 MB with the map's pose
+# graph (gtsam) and the place recognition's vocabulary, 449 MB in all on the stand-in's 123 MB.
 MAX_OWN_LAYERS_MB = 330
 PIPELINE = ("source", "egomotion", "gridcells", "loopclosure", "expmap", "viewer")
 
