@@ -124,3 +124,41 @@ def test_every_parameter_is_documented():
         if f"`{field.name}`" not in text
     ]
     assert not missing, f"undocumented parameters: {missing}"
+
+
+def test_every_parameter_is_declared_with_help_and_a_value_out_of_bounds_names_its_key(tmp_path):
+    """Each estimator parameter has help and, for a number, bounds (services.common.settings.setting);
+    the [egomotion.<estimator>] tables derived from them refuse a value outside them in one
+    line naming the key, and so does make_estimator."""
+    import dataclasses
+
+    bounded = ("ge", "gt", "le", "lt")
+    for name, (_, params) in ESTIMATORS.items():
+        for field in dataclasses.fields(params):
+            assert field.metadata.get("help"), f"{name}.{field.name} has no help"
+            if field.type in ("int", "float", "float | None"):
+                assert any(field.metadata.get(bound) is not None for bound in bounded), f"{name}.{field.name} has no bounds"
+            if field.type == "str":
+                assert field.metadata.get("choices"), f"{name}.{field.name} has no choices"
+    path = tmp_path / "bad.toml"
+    cases = [("stereo", "ransac_iterations", "0", "greater than or equal to 1"),
+             ("stereo", "retry_below_quality", "1.5", "less than or equal to 1"),
+             ("scanline", "camera_hz", "0.0", "greater than 0"),
+             ("mono", "scale_source", '"sky"', "'auto', 'odometry', 'ground' or 'none'"),
+             ("passthrough", "noise_yaw", "-0.1", "greater than or equal to 0"),
+             ("mono", "sigma_yaw", "-1.0", "greater than or equal to 0")]
+    for name, key, text, says in cases:
+        path.write_text(f"[egomotion.{name}]\n{key} = {text}\n")
+        with pytest.raises(ConfigError) as raised:
+            egomotion_config(config_file=path, environ={})
+        message = str(raised.value)
+        assert "\n" not in message and message.startswith(f"[egomotion.{name}] {key}: ") and says in message, message
+        assert str(path) in message
+        value = {"true": True}.get(text, text.strip('"'))
+        value = value if name == "mono" and key == "scale_source" else float(value)
+        with pytest.raises(EstimatorConfigError, match=rf"{name} parameters: invalid {key} = "):
+            make_estimator(name, pinhole(320, 240, baseline=0.1), {key: int(value) if key == "ransac_iterations" else value})
+    # The same file shape as a preset of one's own (no [egomotion] around it) is checked alike.
+    path.write_text("[stereo]\nransac_iterations = -3\n")
+    with pytest.raises(ConfigError, match=r"^\[egomotion.stereo\] ransac_iterations: Input should be greater than or equal to 1"):
+        egomotion_config(config_file=path, environ={})
