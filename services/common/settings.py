@@ -41,15 +41,23 @@ _COMPARE = {"ge": lambda v, b: v >= b, "gt": lambda v, b: v > b, "le": lambda v,
 
 def check(params) -> None:
     """Raise ConfigError naming the first field of ``params`` outside its declared bounds or
-    choices (``LABEL`` of the dataclass, if any, leads the message)."""
+    choices (``LABEL`` of the dataclass, if any, leads the message). None (an optional setting
+    left unset) is within any bounds."""
     kind = getattr(type(params), "LABEL", type(params).__name__)
     for f, _ in declared(type(params)):
         value, meta = getattr(params, f.name), f.metadata
         choices = meta.get("choices")
-        ok = value in choices if choices else all(_COMPARE[bound](value, meta[bound]) for bound in _BOUNDS
-                                                  if meta.get(bound) is not None)
-        if not ok:
-            raise ConfigError(f"{kind}: invalid {f.name} = {value!r}")
+        if choices:
+            if value not in choices:
+                raise ConfigError(f"{kind}: invalid {f.name} = {value!r} (choose one of {', '.join(choices)})")
+            continue
+        broken = [bound for bound in _BOUNDS if meta.get(bound) is not None and value is not None
+                  and not _COMPARE[bound](value, meta[bound])]
+        if broken:
+            raise ConfigError(f"{kind}: invalid {f.name} = {value!r} (must be {_SAY[broken[0]]} {meta[broken[0]]})")
+
+
+_SAY = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
 
 
 def config_fields(params_type: type, prefix: str = "", *, optional: bool = False) -> dict[str, tuple[Any, Any]]:
