@@ -156,7 +156,7 @@ def run_offline(
     blocks of that many frames, as the egomotion service does (shards.py), for the increments a
     pipeline publishes."""
     from services.common.config import is_preset_file, preset_applies
-    from services.egomotion import preset_names, make_estimator, resolve_estimator
+    from services.egomotion import ESTIMATORS, make_estimator, preset_names, resolve_estimator
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
 
@@ -170,6 +170,8 @@ def run_offline(
     else:
         estimator_preset = preset if preset in preset_names() else None
         source_preset = preset if preset in source_spec.preset_names() else None
+    if estimator is not None and estimator not in ESTIMATORS:
+        raise EstimatorConfigError(f"unknown estimator {estimator!r} (available: {', '.join(ESTIMATORS)})")
     # As the egomotion service resolves it: defaults < preset < config file < GRIDSLAM_EGOMOTION_* < --estimator
     name, params = resolve_estimator(estimator, estimator_preset, config_file)
     if n_frames is not None:
