@@ -4,10 +4,11 @@ score it against dead reckoning (and the ground truth when the input is a trajec
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
-from services.common.settings import add_renamed_flag
-from services.common.stages import DECODERS, HEADING_MODELS, STEP_SOURCES
+from services.common.settings import add_flag, add_renamed_flag, setting
+from services.common.stages import STEP_SOURCES, GridStageParams
 from services.evaluation.results import format_table
 from services.evaluation.motion_io import FORMATS
 
@@ -26,25 +27,43 @@ def velocity_scale(text: str) -> float | str:
     return value
 
 
+@dataclass(frozen=True)
+class NetworkRunParams:
+    """The settings `integrate` and `simulate` share (command line only), declared once: their
+    flags are derived from these (with the grid-cell stage's choices, GridStageParams)."""
+
+    velocity_scale: float | str = setting("auto", help="network input units per metre; auto puts the 95th-percentile "
+                                                       "speed at a lattice shift of 3 neurons per frame "
+                                                       "(docs/gridcells.md)")
+    noise_trans: float = setting(0.0, ge=0.0, help="Gaussian translation noise per frame, standard deviation as a "
+                                                   "fraction of the step (0.02 = 2%)")
+    noise_rot: float = setting(0.0, ge=0.0, help="Gaussian rotation noise per frame, standard deviation in degrees")
+    seed: int = setting(0, ge=0, help="random seed of the noise (and of the simulated walk)")
+    out: Path | None = setting(None, help="results folder (default: results/<timestamp>/, with results/latest)")
+
+
+@dataclass(frozen=True)
+class IntegrateParams:
+    """`gridslam integrate`'s own settings (command line only)."""
+
+    fmt: str | None = setting(None, help="input format (default: from the extension, then the content)")
+    n_frames: int | None = setting(None, ge=1, help="only the first N rows")
+    network_rotation: float = setting(0.0, help="turn the world frame the network runs in by DEG (results are turned "
+                                                "back): shows how much a result owes to the route's alignment with "
+                                                "the lattice directions")
+
+
 def add_network_flags(parser: argparse.ArgumentParser) -> None:
     """Flags shared by `integrate` and `simulate`."""
-    parser.add_argument("--velocity-scale", type=velocity_scale, default="auto", metavar="S|auto",
-                        help="network input units per metre; auto (default) puts the 95th-percentile speed at a lattice shift "
-                             "of 3 neurons per frame (docs/gridcells.md)")
-    parser.add_argument("--noise-trans", type=float, default=0.0, metavar="FRACTION",
-                        help="Gaussian translation noise per frame, standard deviation as a fraction of the step (0.02 = 2%%)")
-    parser.add_argument("--noise-rot", type=float, default=0.0, metavar="DEG",
-                        help="Gaussian rotation noise per frame, standard deviation in degrees")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the noise (and of the simulated walk)")
-    parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
+    add_flag(parser, NetworkRunParams, "velocity_scale", type=velocity_scale, metavar="S|auto", standalone=True)
+    add_flag(parser, NetworkRunParams, "noise_trans", metavar="FRACTION", standalone=True)
+    add_flag(parser, NetworkRunParams, "noise_rot", metavar="DEG", standalone=True)
+    add_flag(parser, NetworkRunParams, "seed", standalone=True)
+    add_flag(parser, NetworkRunParams, "out", metavar="DIR", standalone=True)
     add_renamed_flag(parser, "--step", "--step-source", dest="step", choices=STEP_SOURCES)
-    parser.add_argument("--step-source", dest="step", choices=STEP_SOURCES, default="odometry",
-                        help="step length from the input (default; paper eq. 5) or from the calibrated lattice flow "
-                             "(needs --decoder calibrated)")
-    parser.add_argument("--modules", type=int, default=1, metavar="N",
-                        help="grid modules of different spacings, combined by precision (default 1; more need --decoder calibrated)")
-    parser.add_argument("--heading", choices=HEADING_MODELS, default="sum",
-                        help="heading model: summed yaw (default, the paper's) or a head-direction ring attractor")
+    add_flag(parser, GridStageParams, "step", flag="--step-source", standalone=True)
+    add_flag(parser, GridStageParams, "modules", metavar="N", standalone=True)
+    add_flag(parser, GridStageParams, "heading", standalone=True)
 
 
 def grid_options(args):
@@ -61,13 +80,10 @@ def register(subparsers) -> None:
     )
     parser.add_argument("input", type=Path, metavar="INPUT",
                         help="CSV (forward,left,yaw | vx,vy[,heading] | LIBVISO2 columns), KITTI poses, TUM trajectory or rat .npz")
-    parser.add_argument("--format", dest="fmt", metavar="|".join(FORMATS),
-                        help="input format (default: from the extension, then the content)")
-    parser.add_argument("--decoder", choices=DECODERS, default="calibrated", help="how the lattice flow is read (default calibrated)")
-    parser.add_argument("--n-frames", type=int, metavar="N", help="only the first N rows")
-    parser.add_argument("--network-rotation", type=float, default=0.0, metavar="DEG",
-                        help="turn the world frame the network runs in by DEG (results are turned back): shows how much a "
-                             "result owes to the route's alignment with the lattice directions")
+    add_flag(parser, IntegrateParams, "fmt", flag="--format", metavar="|".join(FORMATS), standalone=True)
+    add_flag(parser, GridStageParams, "decoder", standalone=True)
+    add_flag(parser, IntegrateParams, "n_frames", metavar="N", standalone=True)
+    add_flag(parser, IntegrateParams, "network_rotation", metavar="DEG", standalone=True)
     add_network_flags(parser)
     parser.set_defaults(func=run)
 

@@ -12,16 +12,18 @@ from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from services.common.config import load_config, presets
 from services.common.errors import ConfigError
+from services.common.settings import REQUIRED, add_field_flag, add_flag, setting
 from services.common.stages import INTEGRATORS
 from services.evaluation.results import format_table
 from services.expmap.service import add_map_arguments
-from services.loopclosure.service import add_place_recognition_argument
+from services.loopclosure.service import LoopClosureConfig, add_place_recognition_argument
 
 
 def register(subparsers) -> None:
@@ -29,23 +31,17 @@ def register(subparsers) -> None:
     commands = parser.add_subparsers(dest="map_command", metavar="SUBCOMMAND", required=True)
 
     route = commands.add_parser("route", help="the shortest route over a saved map's experiences between two points")
-    route.add_argument("--map", type=Path, required=True, metavar="DIR", help="a results folder holding a map")
-    route.add_argument("--from", dest="start", required=True, metavar="X,Y", type=point, help="start, map frame, m")
-    route.add_argument("--to", dest="goal", required=True, metavar="X,Y", type=point, help="goal, map frame, m")
-    route.add_argument("--out", type=Path, metavar="FILE",
-                       help="write the route as TUM to FILE and as nav_msgs/Path to FILE with .mcap (extra `ros`)")
-    route.add_argument("--reference", type=Path, metavar="TUM",
-                       help="ground truth of the map's frames (groundtruth.tum of the run that made it): the route's "
-                            "length through the true places of its experiences")
+    add_flag(route, RouteParams, "map", required=True, metavar="DIR", standalone=True)
+    add_flag(route, RouteParams, "start", flag="--from", required=True, metavar="X,Y", type=point, standalone=True)
+    add_flag(route, RouteParams, "goal", flag="--to", required=True, metavar="X,Y", type=point, standalone=True)
+    add_flag(route, RouteParams, "out", metavar="FILE", standalone=True)
+    add_flag(route, RouteParams, "reference", metavar="TUM", standalone=True)
     route.set_defaults(func=run_route)
 
     export = commands.add_parser("export", help="rebuild a map from its log; write the graph (JSON) and the corrected trajectory (TUM)")
     export.add_argument("store", type=Path, help="the map log (experience_map.log of a run)")
-    export.add_argument("--graph", type=Path, help="graph JSON to write (default: STORE with .graph.json)")
-    export.add_argument("--tum", type=Path, help="TUM trajectory to write (default: STORE with .tum)")
-    export.add_argument("--reference", type=Path,
-                        help="ground truth (TUM, e.g. groundtruth.tum of a run): print the odometry's and the corrected errors")
-    export.add_argument("--plot", type=Path, help="PNG of the odometry and corrected trajectories (and the reference)")
+    for name in ("graph", "tum", "reference", "plot"):
+        add_flag(export, ExportParams, name, standalone=True)
     _add_params(export, "map parameters (default: those the log was written with; given ones must match it)")
     export.set_defaults(func=run_export)
 
@@ -53,32 +49,76 @@ def register(subparsers) -> None:
                             ("sweep", "build offline maps over several match thresholds and tolerances (Markdown table)")):
         command = commands.add_parser(name, help=help_text)
         images = command.add_mutually_exclusive_group(required=True)
-        images.add_argument("--images", type=Path, help="folder of images (e.g. nubot_scene1/left)")
-        images.add_argument("--source", help="a source spec, e.g. stereo:../shared/data/nubot_scene1 (stereo closures)")
-        command.add_argument("--odometry", type=Path, required=True,
-                             help="motion file, one row per image (e.g. nubot_scene1/libviso2_egomotion.csv)")
-        command.add_argument("--integrator", choices=INTEGRATORS, default="deadreckoning",
-                             help="how the motion is integrated (grid: the network, with the gridcells preset's speed)")
-        command.add_argument("--noise-rot-deg", type=float, default=0.0, help="add Gaussian yaw noise per frame, degrees")
-        command.add_argument("--noise-trans", type=float, default=0.0, help="add Gaussian translation noise, fraction of each step")
-        command.add_argument("--seed", type=int, default=0, help="noise seed")
-        command.add_argument("--n-frames", type=int, help="only the first N images")
-        command.add_argument("--same-place-radius", type=float, default=1.0,
-                             help="a closure between frames whose odometric positions are farther apart is counted as false (m)")
+        add_flag(images, BuildParams, "images", standalone=True)
+        add_flag(images, BuildParams, "source", standalone=True)
+        add_flag(command, BuildParams, "odometry", required=True, standalone=True)
+        for setting_name in ("integrator", "noise_rot_deg", "noise_trans", "seed", "n_frames", "same_place_radius"):
+            add_flag(command, BuildParams, setting_name, standalone=True)
         _add_params(command, "loopclosure, expmap and gridcells parameters")
         add_place_recognition_argument(command)
         if name == "build":
             add_map_arguments(command)
-            command.add_argument("--match-threshold", type=float, help="override the template match threshold")
-            command.add_argument("--tolerance", type=int, help="override the consistency tolerance (frames)")
-            command.add_argument("--out", type=Path, required=True, help="folder for the results")
-            command.add_argument("--title", default="", help="title of the plots")
+            add_field_flag(command, LoopClosureConfig, "match_threshold")   # over the preset's and the config file's
+            add_field_flag(command, LoopClosureConfig, "tolerance")
+            add_flag(command, BuildParams, "out", required=True, standalone=True)
+            add_flag(command, BuildParams, "title", standalone=True)
             command.set_defaults(func=run_build)
         else:
-            command.add_argument("--thresholds", default="0.05,0.06,0.07,0.08,0.1,0.12,0.13,0.14,0.15,0.2",
-                                 help="comma-separated match thresholds")
-            command.add_argument("--tolerances", default="5,6", help="comma-separated consistency tolerances (frames)")
+            add_flag(command, SweepParams, "thresholds", standalone=True)
+            add_flag(command, SweepParams, "tolerances", standalone=True)
             command.set_defaults(func=run_sweep)
+
+
+@dataclass(frozen=True)
+class RouteParams:
+    """`gridslam map route`'s settings (command line only)."""
+
+    map: Path = setting(REQUIRED, help="a results folder holding a map")
+    start: tuple[float, float] = setting(REQUIRED, help="start, map frame, m")
+    goal: tuple[float, float] = setting(REQUIRED, help="goal, map frame, m")
+    out: Path | None = setting(None, help="write the route as TUM to FILE and as nav_msgs/Path to FILE with .mcap "
+                                          "(extra `ros`)")
+    reference: Path | None = setting(None, help="ground truth of the map's frames (groundtruth.tum of the run that made "
+                                                "it): the route's length through the true places of its experiences")
+
+
+@dataclass(frozen=True)
+class ExportParams:
+    """`gridslam map export`'s settings (command line only)."""
+
+    graph: Path | None = setting(None, help="graph JSON to write (default: STORE with .graph.json)")
+    tum: Path | None = setting(None, help="TUM trajectory to write (default: STORE with .tum)")
+    reference: Path | None = setting(None, help="ground truth (TUM, e.g. groundtruth.tum of a run): print the "
+                                                "odometry's and the corrected errors")
+    plot: Path | None = setting(None, help="PNG of the odometry and corrected trajectories (and the reference)")
+
+
+@dataclass(frozen=True)
+class BuildParams:
+    """`gridslam map build` and `sweep`'s settings (command line only; the services' own come
+    from --preset and --config, and --match-threshold, --tolerance from loopclosure's)."""
+
+    odometry: Path = setting(REQUIRED, help="motion file, one row per image (e.g. nubot_scene1/libviso2_egomotion.csv)")
+    images: Path | None = setting(None, help="folder of images (e.g. nubot_scene1/left)")
+    source: str | None = setting(None, help="a source spec, e.g. stereo:../shared/data/nubot_scene1 (stereo closures)")
+    integrator: str = setting("deadreckoning", choices=INTEGRATORS,
+                              help="how the motion is integrated (grid: the network, with the gridcells preset's speed)")
+    noise_rot_deg: float = setting(0.0, ge=0.0, help="add Gaussian yaw noise per frame, degrees")
+    noise_trans: float = setting(0.0, ge=0.0, help="add Gaussian translation noise, fraction of each step")
+    seed: int = setting(0, ge=0, help="noise seed")
+    n_frames: int | None = setting(None, ge=1, help="only the first N images")
+    same_place_radius: float = setting(1.0, gt=0.0, help="a closure between frames whose odometric positions are "
+                                                         "farther apart is counted as false (m)")
+    out: Path | None = setting(None, help="folder for the results")
+    title: str = setting("", help="title of the plots")
+
+
+@dataclass(frozen=True)
+class SweepParams:
+    """`gridslam map sweep`'s settings beside BuildParams (command line only)."""
+
+    thresholds: str = setting("0.05,0.06,0.07,0.08,0.1,0.12,0.13,0.14,0.15,0.2", help="comma-separated match thresholds")
+    tolerances: str = setting("5,6", help="comma-separated consistency tolerances (frames)")
 
 
 def _add_params(parser, what: str) -> None:

@@ -34,9 +34,10 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--source", required=True, metavar="SPEC",
                         help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
-    parser.add_argument("--estimator", metavar="NAME", help=f"{', '.join(ESTIMATORS)} (default: the one the preset or config names)")
+    parser.add_argument("--estimator", metavar="NAME", help=f"{', '.join(ESTIMATORS)} (default: the one the preset or config names, else scanline)")
     parser.add_argument("--preset", metavar="NAME", help="dataset preset for the source and the estimator (nubot, kitti, stlucia, synthetic, campus) or a preset file")
-    parser.add_argument("--config", type=Path, metavar="FILE", help="estimator TOML overriding the preset (docs/egomotion.md)")
+    parser.add_argument("--config", type=Path, metavar="FILE", help="config file whose [egomotion] table (or a file of that table's shape) overrides the preset "
+                             "(docs/egomotion.md)")
     parser.add_argument("--calibration", type=Path, metavar="FILE", help="camera calibration file (docs/sources.md)")
     parser.add_argument("--start", type=int, default=0, help="first frame (default 0)")
     parser.add_argument("--stop", type=int, help="frame to stop before (default: the end)")

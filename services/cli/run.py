@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import textwrap
 import time
-from pathlib import Path
 
 from services.common.config import has_named_preset, load_config, preset_services, preset_values, presets
 from services.common.layout import add_map_reuse_arguments
-from services.common.runtime import DEFAULT_ROUTER
+from services.common.run_settings import FOXGLOVE_PORT, VIEW_ADDRESS, RunOutputParams, RunParams
 from services.common.settings import add_flag, note_renamed
-from services.common.stages import ESTIMATORS, STEP_SOURCES, GridStageParams
+from services.common.stages import STEP_SOURCES, GridStageParams
 from services.expmap.service import add_map_arguments
 from services.pipeline.fleet import add_fleet_arguments
 from services.loopclosure.service import add_place_recognition_argument
@@ -79,37 +79,27 @@ def run_epilog(command: str) -> str:
 def add_run_arguments(parser, *, source_required: bool) -> None:
     """The flags of `gridslam run` and `demo`, in groups (their defaults: None, "not given")."""
     given = parser.add_argument_group("input")
-    given.add_argument("--source", required=source_required, metavar="SPEC",
-                       help="kitti:PATH, stereo:PATH (NuBot layout), images:PATH, video:FILE, camera:N, synthetic:SEED, "
-                            "rosbag:PATH or ros2:TOPIC" + ("" if source_required else " (default synthetic:0)"))
-    given.add_argument("--preset", metavar="NAME|FILE",
-                       help="dataset preset for every service that has one (list below), or a preset file"
-                            + ("" if source_required else " (default synthetic)"))
-    given.add_argument("--calibration", type=Path, metavar="FILE",
-                       help="calibration TOML file for the source (keys below; default: the dataset's own, or the preset's)")
+    add_flag(given, RunParams, "source", required=source_required, metavar="SPEC",
+             shown_default=None if source_required else "synthetic:0")
+    add_flag(given, RunParams, "preset", metavar="NAME|FILE", shown_default=None if source_required else "synthetic")
+    add_flag(given, RunParams, "calibration", metavar="FILE")
     add_fov_argument(given)
-    given.add_argument("--camera-height", type=float, metavar="M",
-                       help="camera height above the ground, m: a metric scale for the mono estimator (ground plane)")
-    given.add_argument("-c", "--config", type=Path, metavar="FILE",
-                       help="gridslam TOML config file: [run] and one table per service, over the preset")
-    given.add_argument("--start", type=int, metavar="K", help="first frame index (default 0)")
-    given.add_argument("--n-frames", type=int, metavar="N", help="process only this many frames (default: all)")
-    given.add_argument("--stride", type=int, metavar="N", help="take every N-th frame (default 1)")
+    add_flag(given, RunParams, "camera_height", metavar="M")
+    add_flag(given, RunParams, "config_file", flag=("-c", "--config"), dest="config", metavar="FILE")
+    add_flag(given, RunParams, "start", metavar="K")
+    add_flag(given, RunParams, "n_frames", metavar="N")
+    add_flag(given, RunParams, "step", flag="--stride", dest="stride", metavar="N")
     given.add_argument("--step", type=old_step_value, action=OldStep, help=argparse.SUPPRESS)
 
     stages = parser.add_argument_group("stages")
-    stages.add_argument("--egomotion", choices=ESTIMATORS,
-                        help="ego-motion estimator (default: the preset's, else scanline; what each needs: below)")
-    stages.add_argument("--egomotion-instances", type=int, metavar="N",
-                        help="ego-motion processes sharing the frames (default 1, frame after frame; more run the "
-                             "estimator in blocks, with the same results whatever their number; docs/pipeline.md)")
+    add_flag(stages, RunParams, "egomotion")
+    add_flag(stages, RunParams, "egomotion_instances", metavar="N")
     for name in ("integrator", "decoder"):
         add_flag(stages, GridStageParams, name)
     add_flag(stages, GridStageParams, "step", flag="--step-source", dest="step_source")
     add_flag(stages, GridStageParams, "modules", metavar="N")
     add_flag(stages, GridStageParams, "heading")
-    stages.add_argument("--no-mapping", dest="mapping", action="store_false", default=None,
-                        help="skip loop closure and the experience map (default: both run)")
+    add_flag(stages, RunParams, "mapping", flag="--no-mapping")
 
     mapping = parser.add_argument_group("mapping")
     add_map_arguments(mapping)
@@ -119,29 +109,21 @@ def add_run_arguments(parser, *, source_required: bool) -> None:
     add_map_reuse_arguments(reuse)
 
     outputs = parser.add_argument_group("outputs")
-    outputs.add_argument("--out", type=Path, metavar="DIR", help="results folder (default results/<timestamp>/ with a latest link)")
-    outputs.add_argument("--overwrite", action="store_true",
-                         help="replace an earlier run in --out (a folder that holds one is refused otherwise)")
-    outputs.add_argument("--no-mcap", dest="mcap", action="store_false", default=None,
-                         help="do not write run.mcap (default: written, with the camera images; extra `ros`)")
-    outputs.add_argument("--view", nargs="?", const="127.0.0.1:8080", metavar="HOST:PORT",
-                         help="also serve the live viewer (127.0.0.1:8080 when no address is given); a run that ends by "
-                              "itself is served on until Ctrl-C")
-    outputs.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
-                         help="also serve the run live to Foxglove, ws://127.0.0.1:PORT (8765 when no port is given; extra "
-                              "`foxglove`); a run that ends by itself is served on until Ctrl-C")
+    add_flag(outputs, RunOutputParams, "out", metavar="DIR")
+    add_flag(outputs, RunOutputParams, "overwrite", default=False)
+    add_flag(outputs, RunParams, "mcap", flag="--no-mcap")
+    add_flag(outputs, RunParams, "view", nargs="?", const=VIEW_ADDRESS, metavar="HOST:PORT")
+    add_flag(outputs, RunParams, "foxglove", nargs="?", const=FOXGLOVE_PORT, metavar="PORT")
 
     network = parser.add_argument_group("network")
-    network.add_argument("-l", "--listen", metavar="ENDPOINT", help=f"the run's router endpoint (default {DEFAULT_ROUTER})")
-    network.add_argument("-e", "--connect", metavar="ENDPOINT",
-                         help="use the router at ENDPOINT instead of starting one (e.g. several robots on one network)")
-    network.add_argument("--robot", metavar="NAME", help="robot name, the <robot> chunk of every key (default robot0)")
+    add_flag(network, RunParams, "listen", flag=("-l", "--listen"), metavar="ENDPOINT")
+    add_flag(network, RunParams, "connect", flag=("-e", "--connect"), metavar="ENDPOINT")
+    add_flag(network, RunParams, "robot", metavar="NAME")
 
     ros2 = parser.add_argument_group("ROS 2", textwrap.fill("the run as a node of a ROS 2 graph over Zenoh "
                                                             "(docs/ecosystem.md); the graph settings also apply to a "
                                                             "ros2: source", HELP_WIDTH - 4))
-    ros2.add_argument("--ros2", action="store_true", default=None,
-                      help="also run the ros2 service: the run as the node gridslam (rmw_zenoh)")
+    add_flag(ros2, RunParams, "ros2")
     add_graph_arguments(ros2)
 
     bag = parser.add_argument_group("ROS bag", "topics of --source rosbag:PATH (and ros2:TOPIC)")
@@ -226,20 +208,18 @@ class Progress:
 # RunConfig fields whose flag is not --FIELD-NAME (a bad value names the flag).
 RUN_FLAGS = {"step": "--stride", "config_file": "--config", "mapping": "--no-mapping", "mcap": "--no-mcap",
              "world": "--world"}
+RUN_DESTS = {"step": "stride", "config_file": "config"}   # RunParams fields whose flag's value is args.<other name>
+# (window and stall_timeout have no flag: config file and environment only)
 
 
 def run_flags(args) -> dict:
     """The RunConfig fields the flags set (None: not given)."""
-    return {"source": args.source, "egomotion": args.egomotion, "egomotion_instances": args.egomotion_instances,
+    return {**{f.name: getattr(args, RUN_DESTS.get(f.name, f.name), None) for f in dataclasses.fields(RunParams)},
             "integrator": args.integrator, "decoder": args.decoder, "step_source": args.step_source,
-            "modules": args.modules, "heading": args.heading,
-            "preset": args.preset, "calibration": args.calibration, "fov": args.fov, "camera_height": args.camera_height,
-            "config_file": args.config, "n_frames": args.n_frames, "start": args.start, "step": args.stride,
-            "listen": args.listen, "connect": args.connect,
-            "robot": args.robot, "mapping": args.mapping, "view": args.view, "closure": args.closure,
+            "modules": args.modules, "heading": args.heading, "fov": args.fov, "closure": args.closure,
             "map_optimizer": args.map_optimizer, "place_recognition": args.place_recognition,
             "map": args.map, "localize": args.localize, "world": parse_world_flags(args.world, args.laps) or None,
-            "mcap": args.mcap, "foxglove": args.foxglove, "ros2": args.ros2, **graph_flags(args), **bag_settings(args)}
+            **graph_flags(args), **bag_settings(args)}
 
 
 def execute(args, **defaults) -> int:

@@ -8,7 +8,7 @@ import logging
 import os
 
 from services.common.runtime import add_runtime_flags, runtime_from_args
-from services.common.settings import CommandParser, renamed_flags
+from services.common.settings import CommandParser, add_flag, renamed_flags
 
 # Service name → adapter module; each exposes add_arguments(parser) and main(runtime, args) -> int.
 # Modules are imported only for the service being started, which keeps `gridslam` itself light.
@@ -35,10 +35,12 @@ def register(subparsers) -> None:
 
 def service_parser(name: str):
     """The parser of one service's flags: the shared runtime flags plus its own; and its main()."""
+    from services.common.service import ServiceParams
+
     module = importlib.import_module(SERVICES[name])
     parser = CommandParser(prog=f"gridslam service {name}", description=module.__doc__.strip().splitlines()[0])
     add_runtime_flags(parser)
-    parser.add_argument("--instance", help="instance name in the health key (default host-pid)")
+    add_flag(parser, ServiceParams, "instance")
     module.add_arguments(parser)
     return parser, module.main
 

@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 
 from services.cli.integrate import add_network_flags, grid_options
+from services.common.settings import add_flag, setting
 from services.common.stages import DECODERS
 from services.evaluation.results import format_table
 from services.gridcells.simulation import WalkParams
@@ -19,6 +21,18 @@ def decoder_list(text: str) -> tuple[str, ...]:
     return names
 
 
+@dataclass(frozen=True)
+class SimulateParams:
+    """`gridslam simulate`'s own settings (command line only), beside NetworkRunParams."""
+
+    n_frames: int = setting(3500, ge=1, help="frames of the drift run (3500: the paper's)")
+    decoders: tuple[str, ...] = setting(("paper", "fft", "subpixel"),
+                                        help=f"comma-separated decoders to run, of {','.join(DECODERS)}; --step-source "
+                                             f"and --modules apply to calibrated")
+    firing_frames: int = setting(30000, ge=0, help="frames of the firing-map run (30000 = 10 minutes at 50 Hz; 0 skips it)")
+    frame_period: float = setting(WalkParams.frame_period_s, gt=0.0, help="seconds per frame")
+
+
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "simulate", help="the paper's simulation: drift per decoder, firing map and gridness",
@@ -26,14 +40,10 @@ def register(subparsers) -> None:
                     "and dead reckoning integrate its odometry; the walk continued drives the network for the firing map "
                     "of neuron (0, 0) and its gridness score.",
     )
-    parser.add_argument("--n-frames", type=int, default=3500, metavar="N", help="frames of the drift run (default 3500, the paper's)")
-    parser.add_argument("--decoders", type=decoder_list, default=("paper", "fft", "subpixel"), metavar="LIST",
-                        help=f"comma-separated decoders to run, of {','.join(DECODERS)} (default paper,fft,subpixel); --step "
-                             "and --modules apply to calibrated")
-    parser.add_argument("--firing-frames", type=int, default=30000, metavar="N",
-                        help="frames of the firing-map run (default 30000 = 10 minutes at 50 Hz; 0 skips it)")
-    parser.add_argument("--frame-period", type=float, default=WalkParams.frame_period_s, metavar="S",
-                        help=f"seconds per frame (default {WalkParams.frame_period_s})")
+    add_flag(parser, SimulateParams, "n_frames", metavar="N", standalone=True)
+    add_flag(parser, SimulateParams, "decoders", type=decoder_list, metavar="LIST", standalone=True)
+    add_flag(parser, SimulateParams, "firing_frames", metavar="N", standalone=True)
+    add_flag(parser, SimulateParams, "frame_period", metavar="S", standalone=True)
     add_network_flags(parser)
     parser.set_defaults(func=run)
 

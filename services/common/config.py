@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import os
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, TypeVar, get_origin
 
@@ -172,9 +172,12 @@ def load_config(
     overrides: Mapping[str, Any] | None = None,
     environ: Mapping[str, str] | None = None,
     flags: Mapping[str, str] | None = None,
+    table_of: Callable[[dict[str, Any], Path], Any] | None = None,
 ) -> ModelT:
     """Build `model` for `section` from defaults < preset < config file < environment < overrides
     (flags). Overrides whose value is None are ignored, so argparse defaults of None mean "not given".
+    ``table_of(content, path)``: the section's table of a config file's content (default: its
+    ``[section]`` table), for a section whose own table may also be a file of its own.
     A bad value is a ConfigError naming where it came from: the flag (`flags` maps a field to
     its flag where that is not --FIELD-NAME), the environment variable, or the file and key."""
     values: dict[str, Any] = dict(defaults or {})
@@ -184,7 +187,8 @@ def load_config(
         merge_tables(values, preset_values(section, preset))
         sources.append(f"preset file {preset}" if is_preset_file(preset) else f"preset {preset!r}")
     if config_file is not None:
-        table = read_toml(config_file).get(section, {})
+        content = read_toml(config_file)
+        table = table_of(content, config_file) if table_of is not None else content.get(section, {})
         if not isinstance(table, dict):
             raise ConfigError(f"{config_file}: [{section}] must be a table")
         merge_tables(values, table)
@@ -199,11 +203,14 @@ def load_config(
         return model.model_validate(values)
     except ValidationError as error:
         first = error.errors()[0]
-        where = ".".join(str(part) for part in first["loc"]) or section
-        name = str(first["loc"][0]) if first["loc"] else None
+        loc = [str(part) for part in first["loc"]]
+        name = loc[0] if loc else None
+        # a key of a sub-table ([egomotion.stereo] ransac_iterations) is named as a TOML file names it
+        nested = len(loc) > 1 and isinstance(first["loc"][1], str)
+        table, where = (f"{section}.{loc[0]}", ".".join(loc[1:])) if nested else (section, ".".join(loc) or section)
         shown = "input" in first and not isinstance(first["input"], dict) and first.get("type") != "extra_forbidden"
         got = f", got {first['input']!r}" if shown else ""   # an unknown key's value says nothing
         if name in given:
-            raise ConfigError(f"{given[name]}: {first['msg']}{got} ([{section}] {name})") from None
+            raise ConfigError(f"{given[name]}: {first['msg']}{got} ([{table}] {where})") from None
         origin = f" (from {', '.join(sources)})" if sources else ""
-        raise ConfigError(f"[{section}] {where}: {first['msg']}{got}{origin}") from None
+        raise ConfigError(f"[{table}] {where}: {first['msg']}{got}{origin}") from None

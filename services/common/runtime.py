@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from services.common.config import load_config
 from services.common.errors import ConfigError
+from services.common.settings import add_field_flag
 
 log = logging.getLogger(__name__)
 
@@ -30,13 +31,15 @@ class RuntimeConfig(BaseModel):
 
     mode: Literal[SESSION_MODES] = Field("client", description="Zenoh session mode.")
     connect: list[str] = Field(
-        default_factory=lambda: [DEFAULT_ROUTER], description="Endpoints to connect to, e.g. tcp/127.0.0.1:7447."
+        default_factory=lambda: [DEFAULT_ROUTER], description="Endpoints to connect to, e.g. tcp/127.0.0.1:7447 "
+                                                              "(a flag per endpoint)."
     )
-    listen: list[str] = Field(default_factory=list, description="Endpoints to listen on.")
+    listen: list[str] = Field(default_factory=list, description="Endpoints to listen on (a flag per endpoint).")
     multicast_scouting: bool = Field(False, description="Discover peers by UDP multicast (off: loopback and containers).")
     robot: str = Field("robot0", pattern=r"^[A-Za-z0-9_\-]+$", description="Robot name, the <robot> chunk of every key.")
     zenoh_config: Path | None = Field(None, description="A Zenoh JSON5 config file applied first (TLS, access control).")
-    cfg: dict[str, str] = Field(default_factory=dict, description="Raw Zenoh settings KEY: JSON5 VALUE, applied last.")
+    cfg: dict[str, str] = Field(default_factory=dict, description="Raw Zenoh settings KEY:VALUE, VALUE in JSON5, applied "
+                                                                  "last, e.g. transport/link/tx/lease:3000.")
 
 
 def is_loopback(host: str) -> bool:
@@ -50,19 +53,17 @@ def is_loopback(host: str) -> bool:
 
 
 def add_runtime_flags(parser: argparse.ArgumentParser) -> None:
-    """The flag set every gridslam process shares."""
+    """The flag set every gridslam process shares, derived from RuntimeConfig's fields (their
+    help, choices, types and defaults written there once); -c/--config names the file of them."""
     group = parser.add_argument_group("zenoh")
-    group.add_argument("--mode", choices=SESSION_MODES, help="session mode (default client)")
-    group.add_argument("-e", "--connect", action="append", metavar="ENDPOINT", help=f"endpoint to connect to (default {DEFAULT_ROUTER})")
-    group.add_argument("-l", "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on")
+    add_field_flag(group, RuntimeConfig, "mode")
+    add_field_flag(group, RuntimeConfig, "connect", flag=("-e", "--connect"), action="append", metavar="ENDPOINT")
+    add_field_flag(group, RuntimeConfig, "listen", flag=("-l", "--listen"), action="append", metavar="ENDPOINT")
     group.add_argument("-c", "--config", type=Path, metavar="FILE", help="gridslam TOML config file ([runtime] and per-service tables)")
-    group.add_argument("--zenoh-config", type=Path, metavar="FILE", help="Zenoh JSON5 config file (TLS, access control)")
-    group.add_argument(
-        "--multicast-scouting", action=argparse.BooleanOptionalAction, default=None,
-        help="UDP multicast scouting (default off)",
-    )
-    group.add_argument("--cfg", action="append", metavar="KEY:VALUE", help="raw Zenoh setting, VALUE in JSON5, e.g. transport/link/tx/lease:3000")
-    group.add_argument("--robot", help="robot name in every key (default robot0)")
+    add_field_flag(group, RuntimeConfig, "zenoh_config", metavar="FILE")
+    add_field_flag(group, RuntimeConfig, "multicast_scouting", action=argparse.BooleanOptionalAction)
+    add_field_flag(group, RuntimeConfig, "cfg", action="append", metavar="KEY:VALUE")
+    add_field_flag(group, RuntimeConfig, "robot")
 
 
 def parse_cfg(items: list[str] | None) -> dict[str, str] | None:

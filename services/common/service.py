@@ -33,6 +33,7 @@ from services.common.errors import ConfigError, GridslamError, PersistenceError
 from services.common.recovery import OutputMemory, RouterLink
 from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
 from services.common.sequencing import Delivery, Sequencer, SequencerParams
+from services.common.settings import setting
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +131,14 @@ def declare_subscriber(session: zenoh.Session, key: str, on_sample: Callable[[ze
     return zenoh.ext.declare_advanced_subscriber(
         session, key, on_sample,
         recovery=zenoh.ext.RecoveryConfig(periodic_queries=timedelta(seconds=RECOVERY_QUERY_S)))
+
+
+@dataclass(frozen=True)
+class ServiceParams:
+    """What a service process is told beside its runtime (flag --instance; no config key: each
+    process of a robot's service is named on its own command line)."""
+
+    instance: str | None = setting(None, help="instance name in the health key (default: HOST-PID)")
 
 
 class Service:

@@ -23,10 +23,17 @@ from services.common.errors import ConfigError
 _BOUNDS = ("ge", "gt", "le", "lt")
 
 
+REQUIRED = ...   # setting(REQUIRED, ...): a setting with no default, that must be given
+
+
 def setting(default: Any, *, help: str, choices: tuple[str, ...] | None = None, ge: float | None = None,
             gt: float | None = None, le: float | None = None, lt: float | None = None) -> Any:
-    """A dataclass field with its documentation and its allowed values."""
+    """A dataclass field with its documentation and its allowed values (``default`` REQUIRED:
+    none, the setting must be given; such fields come first in their dataclass). A default of
+    None means "not set", allowed beside the choices and bounds."""
     metadata = {"help": help, "choices": choices, "ge": ge, "gt": gt, "le": le, "lt": lt}
+    if default is REQUIRED:
+        return dataclasses.field(metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
 
 
@@ -41,15 +48,25 @@ _COMPARE = {"ge": lambda v, b: v >= b, "gt": lambda v, b: v > b, "le": lambda v,
 
 def check(params) -> None:
     """Raise ConfigError naming the first field of ``params`` outside its declared bounds or
-    choices (``LABEL`` of the dataclass, if any, leads the message)."""
+    choices (``LABEL`` of the dataclass, if any, leads the message). None (an optional setting
+    left unset) is within any bounds."""
     kind = getattr(type(params), "LABEL", type(params).__name__)
     for f, _ in declared(type(params)):
         value, meta = getattr(params, f.name), f.metadata
         choices = meta.get("choices")
-        ok = value in choices if choices else all(_COMPARE[bound](value, meta[bound]) for bound in _BOUNDS
-                                                  if meta.get(bound) is not None)
-        if not ok:
-            raise ConfigError(f"{kind}: invalid {f.name} = {value!r}")
+        if value is None and f.default is None:
+            continue
+        if choices:
+            if value not in choices:
+                raise ConfigError(f"{kind}: invalid {f.name} = {value!r} (choose one of {', '.join(choices)})")
+            continue
+        broken = [bound for bound in _BOUNDS if meta.get(bound) is not None and value is not None
+                  and not _COMPARE[bound](value, meta[bound])]
+        if broken:
+            raise ConfigError(f"{kind}: invalid {f.name} = {value!r} (must be {_SAY[broken[0]]} {meta[broken[0]]})")
+
+
+_SAY = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
 
 
 def config_fields(params_type: type, prefix: str = "", *, optional: bool = False) -> dict[str, tuple[Any, Any]]:
@@ -63,14 +80,14 @@ def config_fields(params_type: type, prefix: str = "", *, optional: bool = False
     for f, annotation in declared(params_type):
         meta = f.metadata
         if meta.get("choices"):
-            annotation = Literal[meta["choices"]]
+            annotation = Literal[meta["choices"]] | None if f.default is None else Literal[meta["choices"]]
         bounds = {bound: meta[bound] for bound in _BOUNDS if meta.get(bound) is not None}
         description = meta.get("help", "")
         if optional:
             annotation, default = annotation | None, None
             description = f"{description} (default: the service's, {f.default})"
         else:
-            default = f.default
+            default = ... if f.default is dataclasses.MISSING else f.default
         fields[prefix + f.name] = (annotation, Field(default, description=description, **bounds))
     return fields
 
@@ -81,39 +98,85 @@ def params_of(params_type: type, values, prefix: str = ""):
     return params_type(**{f.name: get(prefix + f.name) for f in dataclasses.fields(params_type)})
 
 
-def add_flag(parser, params_type: type, name: str, *, prefix: str = "", flag: str | None = None, **extra) -> None:
+def _not_none(annotation: Any) -> Any:
+    """X of an X | None annotation (else the annotation)."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return next(arg for arg in typing.get_args(annotation) if arg is not type(None))
+    return annotation
+
+
+def add_flag(parser, params_type: type, name: str, *, prefix: str = "", flag: str | tuple[str, ...] | None = None,
+             shown_default: Any = None, standalone: bool = False, **extra) -> None:
     """An argparse flag for one declared setting (default None: "not given"), its type, choices
-    and help from the declaration."""
+    and help from the declaration. ``flag``: its spelling (or spellings, e.g. ("-l", "--listen");
+    default --NAME). A bool setting is a switch: --no-NAME sets it false, any other spelling
+    true. ``shown_default``: the default --help names when the command's differs from the
+    declaration's (None: the declaration's; a default of None or a switch's is not shown, the
+    help says what happens). ``standalone``: a command's own flag that no config model reads
+    after it: its default is the declared one and the declared bounds are checked as it is
+    parsed (a flag read into a config model is checked there, naming the flag)."""
     f, annotation = next((f, a) for f, a in declared(params_type) if f.name == name)
     meta = f.metadata
-    kwargs: dict[str, Any] = {"help": f"{meta.get('help', '').rstrip('.')} (default {f.default})"}
-    if meta.get("choices"):
-        kwargs["choices"] = list(meta["choices"])
-    elif annotation in (int, float):
-        kwargs["type"] = annotation
-    kwargs["dest"] = prefix + name
-    parser.add_argument(flag or "--" + (prefix + name).replace("_", "-"), **{**kwargs, **extra})
+    annotation = _not_none(annotation)
+    flags = (flag,) if isinstance(flag, str) else tuple(flag or ("--" + (prefix + name).replace("_", "-"),))
+    default = shown_default if shown_default is not None else f.default
+    text = meta.get("help", "").rstrip(".").replace("%", "%%")   # argparse formats help with %
+    kwargs: dict[str, Any] = {"dest": prefix + name}
+    if annotation is bool:
+        off = flags[-1].startswith("--no-")
+        kwargs.update(action="store_false" if off else "store_true", default=None)
+        kwargs["help"] = f"{text} (on by default; {flags[-1]} turns it off)" if off else text   # a switch: off unless given
+    else:
+        shown = default not in (None, "") and default is not dataclasses.MISSING
+        kwargs["help"] = f"{text} (default {_shown(default)})" if shown else text
+        if meta.get("choices"):
+            kwargs["choices"] = list(meta["choices"])
+        elif annotation in (int, float, Path):
+            kwargs["type"] = _bounded(annotation, meta) if standalone else annotation
+    if standalone:
+        kwargs["default"] = f.default if f.default is not dataclasses.MISSING else None
+    parser.add_argument(*flags, **{**kwargs, **extra})
 
 
-def add_field_flag(parser, model, name: str, *, flag: str | None = None, **extra) -> None:
+def _shown(value: Any) -> str:
+    return ",".join(str(item) for item in value) if isinstance(value, (list, tuple)) else str(value)
+
+
+def _bounded(kind: type, meta) -> Any:
+    """argparse's type for a number within the declared bounds."""
+    def convert(text: str):
+        value = kind(text)   # a ValueError: argparse's "invalid int value"
+        for bound in _BOUNDS:
+            if meta.get(bound) is not None and not _COMPARE[bound](value, meta[bound]):
+                raise argparse.ArgumentTypeError(f"expected a number {_SAY[bound]} {meta[bound]:g}, got {text!r}")
+        return value
+
+    convert.__name__ = kind.__name__
+    return convert
+
+
+def add_field_flag(parser, model, name: str, *, flag: str | tuple[str, ...] | None = None, **extra) -> None:
     """An argparse flag for one field of a pydantic config model (default None: "not given"):
     its type, choices, help and default from the field; a bool field is a switch that sets it
-    true. For the settings a service declares in its config model rather than a core's dataclass."""
+    true. ``flag``: its spelling or spellings (default --NAME). For the settings a service
+    declares in its config model rather than a core's dataclass."""
     field = model.model_fields[name]
-    annotation = field.annotation
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):   # X | None: the X
-        annotation = next(arg for arg in typing.get_args(annotation) if arg is not type(None))
+    annotation = _not_none(field.annotation)
     default = field.get_default(call_default_factory=True)
-    # None: the description says what happens; a switch is off unless given
-    said = "" if default is None or (annotation is bool and default is False) else f" (default {default})"
-    kwargs: dict[str, Any] = {"dest": name, "help": f"{(field.description or '').rstrip('.')}{said}"}
+    if isinstance(default, (list, tuple)):
+        default = ", ".join(str(item) for item in default) or None
+    # None or empty: the description says what happens; a switch is off unless given
+    said = "" if default in (None, {}) or (annotation is bool and default is False) else f" (default {default})"
+    text = (field.description or "").rstrip(".").replace("%", "%%")   # argparse formats help with %
+    kwargs: dict[str, Any] = {"dest": name, "help": f"{text}{said}"}
     if annotation is bool:
         kwargs.update(action="store_true", default=None)
     elif typing.get_origin(annotation) is Literal:
         kwargs["choices"] = list(typing.get_args(annotation))
     elif annotation in (int, float, Path):
         kwargs["type"] = annotation
-    parser.add_argument(flag or "--" + name.replace("_", "-"), **{**kwargs, **extra})
+    flags = (flag,) if isinstance(flag, str) else tuple(flag or ("--" + name.replace("_", "-"),))
+    parser.add_argument(*flags, **{**kwargs, **extra})
 
 
 class CommandParser(argparse.ArgumentParser):

@@ -2,15 +2,16 @@
 quality) per camera frame. Pure cores (numpy and OpenCV only).
 
     make_estimator(name, camera, params)   # "scanline", "stereo", "mono", "passthrough"
-    egomotion_config(preset, config_file)  # the service's settings (EgomotionConfig), as every service reads its own
+    egomotion_config(preset, config_file)  # the settings (EgomotionConfig): the service's, the run's, gridslam odometry's
     resolve_estimator(...), resolve_sharding(...)   # from them: the estimator and its parameters, the blocks
-    load_estimator_config(preset, config_file) -> (default estimator name, {name: params})   # gridslam odometry
 
 Presets (services/egomotion/presets/<name>.toml) hold an optional top-level ``estimator``
 (the default estimator for that dataset) and one table of parameters per estimator,
 ``[scanline]``, ``[stereo]``, ``[mono]``, ``[passthrough]``: the shape of a config file's
-[egomotion] table. `gridslam odometry --config` takes a file of that shape (or a whole config
-file), over the preset key by key. docs/egomotion.md describes every parameter.
+[egomotion] table. A --config file may have that shape too (or be a whole config file), over
+the preset key by key. Every parameter is declared once with its help and bounds
+(services.common.settings.setting) and EgomotionConfig's tables are derived from them;
+docs/egomotion.md describes them.
 """
 
 from __future__ import annotations
@@ -72,74 +73,36 @@ def preset_names() -> list[str]:
     return sorted(path.stem for path in PRESET_DIR.glob("*.toml"))
 
 
-def read_config_file(path: str | Path) -> dict[str, Any]:
-    """A preset or config TOML file, shape-checked: optional ``estimator`` string and one
-    table per estimator name; or a whole gridslam config file, whose [egomotion] table has that
-    shape (and the instances' keys, which an offline run has no use for)."""
-    from services.common.config import read_toml
-
-    table = read_toml(path, error=EstimatorConfigError)
-    if isinstance(table.get("egomotion"), dict):
-        table = {key: value for key, value in table["egomotion"].items() if key not in SHARD_SETTINGS}
-        return check_config_table(table, f"{path}: [egomotion]")
-    return check_config_table(table, str(path))
-
-
-def check_config_table(table: dict[str, Any], where: str) -> dict[str, Any]:
-    """``table`` if it has the shape of an estimator preset (optional ``estimator`` string and
-    one table per estimator name, each of known parameters), else EstimatorConfigError naming ``where``."""
-    for key, value in table.items():
-        if key == "estimator":
-            if value not in ESTIMATORS:
-                raise EstimatorConfigError(f"{where}: estimator {value!r} is not one of {', '.join(ESTIMATORS)}")
-        elif key in ESTIMATORS:
-            if not isinstance(value, dict):
-                raise EstimatorConfigError(f"{where}: [{key}] must be a table of parameters")
-            params_from_dict(ESTIMATORS[key][1], value, where=f"{where}: [{key}]")
-        else:
-            raise EstimatorConfigError(
-                f"{where}: unknown key {key!r} (expected 'estimator' or a table [{'], ['.join(ESTIMATORS)}])"
-            )
-    return table
-
-
-def load_estimator_config(
-    preset: str | None = None, config_file: str | Path | None = None
-) -> tuple[str | None, dict[str, dict[str, Any]]]:
-    """The default estimator name (or None) and the parameters of every estimator, from a
-    preset (a name, or a preset file: its [egomotion] table over its base's,
-    services/common/config.py) and/or a config file (the file overrides the preset key by key)."""
-    from services.common.config import is_preset_file, preset_values
-
-    default: str | None = None
-    params: dict[str, dict[str, Any]] = {name: {} for name in ESTIMATORS}
-    tables: list[dict[str, Any]] = []
-    if preset is not None:
-        if is_preset_file(preset):
-            tables.append(check_config_table(preset_values("egomotion", preset), f"{preset}: [egomotion]"))
-        elif preset in preset_names():
-            tables.append(read_config_file(PRESET_DIR / f"{preset}.toml"))
-        else:
-            raise EstimatorConfigError(f"unknown estimator preset {preset!r} (available: {', '.join(preset_names())})")
-    if config_file is not None:
-        tables.append(read_config_file(config_file))
-    for table in tables:
-        default = table.get("estimator", default)
-        for name in ESTIMATORS:
-            params[name].update(table.get(name, {}))
-    return default, params
+def egomotion_table(content: dict[str, Any], path: Path) -> Any:
+    """The [egomotion] table of a config file's ``content``: a whole config file's [egomotion]
+    table (none: no settings), or the file itself when it has the shape of that table (an
+    ``estimator`` key or a table per estimator, as the presets have), so that a preset-shaped
+    file of one's own works as --config."""
+    if "egomotion" in content:
+        return content["egomotion"]
+    if any(key == "estimator" or key in ESTIMATORS or key in SHARD_SETTINGS for key in content):
+        return content
+    return {}
 
 
 def egomotion_config(preset: str | Path | None = None, config_file: str | Path | None = None, environ=None,
                      **flags) -> BaseModel:
     """The egomotion service's settings (EgomotionConfig): the preset's (a name or a preset file,
-    its estimator and tables) < the config file's [egomotion] table (one sub-table per estimator,
-    key by key over the preset's) < GRIDSLAM_EGOMOTION_<KEY> < ``flags`` (estimator, instances,
-    shard_block; None: not given). The one resolution for the egomotion service and the runner."""
+    its estimator and tables) < the config file's [egomotion] table (or a file of that table's
+    shape, egomotion_table; one sub-table per estimator, key by key over the preset's) <
+    GRIDSLAM_EGOMOTION_<KEY> < ``flags`` (estimator, instances, shard_block; None: not given).
+    The one resolution for the egomotion service, the runner and `gridslam odometry`. A bad
+    value is a ConfigError naming its key (``[egomotion.stereo] ransac_iterations: ...``)."""
     from services.common.config import load_config
 
     return load_config(EgomotionConfig, "egomotion", preset=preset, config_file=Path(config_file) if config_file else None,
-                       environ=environ, overrides=flags)
+                       environ=environ, overrides=flags, table_of=egomotion_table)
+
+
+def estimator_params(config: BaseModel, name: str) -> dict[str, Any]:
+    """The parameters of estimator ``name`` an EgomotionConfig gives (the keys set, over the
+    preset's: the rest are the estimator's defaults)."""
+    return getattr(config, name).model_dump(exclude_unset=True)
 
 
 def resolve_estimator(estimator: str | None = None, preset: str | None = None, config_file: str | Path | None = None,
@@ -148,7 +111,7 @@ def resolve_estimator(estimator: str | None = None, preset: str | None = None, c
     one. ``camera_height`` (m) sets mono's camera_height_m."""
     config = egomotion_config(preset, config_file, environ, estimator=estimator)
     name = config.estimator or "scanline"
-    params = dict(getattr(config, name))
+    params = estimator_params(config, name)
     if camera_height is not None and name == "mono":
         params["camera_height_m"] = camera_height
     params_from_dict(ESTIMATORS[name][1], params, where=f"{name} parameters")   # fail at start, not at frame 1
@@ -178,11 +141,17 @@ class _EgomotionFields(BaseModel):
         None, description="The ego-motion estimator (default: the preset's, else scanline).")
 
 
+def _estimator_model(name: str, params: type) -> type[BaseModel]:
+    """The table [egomotion.<name>]: the estimator's parameters, derived from their declaration."""
+    return create_model(f"{name.capitalize()}Config", __config__=ConfigDict(frozen=True, extra="forbid"),
+                        __doc__=f"The {name} estimator's parameters ({params.__name__}, docs/egomotion.md).",
+                        **config_fields(params))
+
+
 EgomotionConfig = create_model(
     "EgomotionConfig", __base__=_EgomotionFields, __doc__=_EgomotionFields.__doc__, **config_fields(ShardParams),
-    **{name: (dict[str, Any], Field(default_factory=dict, description=f"The {name} estimator's parameters "
-                                                                       f"({params.__name__})."))
-       for name, (_, params) in ESTIMATORS.items()})
+    **{name: (model, Field(default_factory=model, description=model.__doc__))
+       for name, model in ((name, _estimator_model(name, params)) for name, (_, params) in ESTIMATORS.items())})
 
 
 __all__ = [
@@ -192,13 +161,12 @@ __all__ = [
     "EstimatorConfigError",
     "Increment",
     "EgomotionConfig",
-    "check_config_table",
     "egomotion_config",
+    "egomotion_table",
+    "estimator_params",
     "increment_from_transform",
-    "load_estimator_config",
     "make_estimator",
     "preset_names",
-    "read_config_file",
     "resolve_estimator",
     "resolve_sharding",
     "transform_from_increment",

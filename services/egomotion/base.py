@@ -22,6 +22,7 @@ import numpy as np
 
 from services.common.errors import ConfigError, GridslamError
 from services.common.geometry import increment_from_transform
+from services.common.settings import check, setting
 
 
 class EgomotionError(GridslamError):
@@ -55,6 +56,31 @@ class Increment:
     scaled: bool = True
 
 
+# The noise model's settings (docs/egomotion.md, "Uncertainty"): every estimator declares them,
+# each with its own defaults (noise_setting), the help written once here.
+NOISE_HELP = {
+    "sigma_translation": "standard deviation of forward and left per metre moved",
+    "sigma_translation_floor": "standard deviation of forward and left per frame however little it moved, m",
+    "sigma_yaw": "standard deviation of yaw per radian turned",
+    "sigma_yaw_per_m": "standard deviation of yaw per metre moved, rad",
+    "sigma_yaw_floor": "standard deviation of yaw per frame however little it turned, rad",
+    "sigma_failure_m": "standard deviation of forward and left of a failed frame (quality 0), m",
+    "sigma_failure_rad": "standard deviation of yaw of a failed frame (quality 0), rad",
+}
+FAILURE_MOTIONS = ("zero", "hold")   # what a failed frame reports: no motion, or the last motion
+
+
+def noise_setting(name: str, default: float):
+    """One of the noise model's settings (NOISE_HELP) with an estimator's own default."""
+    return setting(default, ge=0.0, help=NOISE_HELP[name])
+
+
+def failure_motion_setting():
+    return setting("zero", choices=FAILURE_MOTIONS,
+                   help="what a failed frame reports (quality 0): zero motion, or hold the last motion "
+                        "(as LIBVISO2's pipeline does)")
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     """The uncertainty an estimator reports with each increment (EgoMotion.covariance), as
@@ -65,18 +91,16 @@ class NoiseModel:
     defaults measured against ground truth for that estimator (docs/egomotion.md,
     "Uncertainty"); the experience map weighs the odometry by them."""
 
-    sigma_translation: float = 0.02
-    sigma_translation_floor: float = 0.001
-    sigma_yaw: float = 0.02
-    sigma_yaw_per_m: float = 0.005
-    sigma_yaw_floor: float = 0.0005
-    sigma_failure_m: float = 0.5
-    sigma_failure_rad: float = 0.2
+    sigma_translation: float = noise_setting("sigma_translation", 0.02)
+    sigma_translation_floor: float = noise_setting("sigma_translation_floor", 0.001)
+    sigma_yaw: float = noise_setting("sigma_yaw", 0.02)
+    sigma_yaw_per_m: float = noise_setting("sigma_yaw_per_m", 0.005)
+    sigma_yaw_floor: float = noise_setting("sigma_yaw_floor", 0.0005)
+    sigma_failure_m: float = noise_setting("sigma_failure_m", 0.5)
+    sigma_failure_rad: float = noise_setting("sigma_failure_rad", 0.2)
 
     def __post_init__(self) -> None:
-        for field in dataclasses.fields(NoiseModel):
-            if getattr(self, field.name) < 0:
-                raise ValueError(f"{field.name} must be >= 0")
+        check(self)   # every declared setting of the estimator's parameters within its bounds and choices
 
     def covariance(self, increment: Increment) -> np.ndarray | None:
         """3×3 covariance of (forward, left, yaw); None for an increment without metric scale."""
@@ -122,7 +146,8 @@ def increment_with_transform(
 
 
 # ---------------------------------------------------------------------------------------------
-# Parameters: plain frozen dataclasses (no pydantic in cores), built from TOML/CLI dicts.
+# Parameters: frozen dataclasses of declared settings (services.common.settings.setting: help,
+# bounds, choices; no pydantic in cores), built from TOML/CLI dicts.
 
 P = TypeVar("P")
 
@@ -143,6 +168,8 @@ def params_from_dict(cls: type[P], values: dict[str, Any] | None, *, where: str)
         return cls(**converted)
     except (TypeError, ValueError) as error:
         raise EstimatorConfigError(f"{where}: {error}") from None
+    except ConfigError as error:   # outside the declared bounds or choices (settings.check)
+        raise EstimatorConfigError(f"{where}: {str(error).split(': ', 1)[-1]}") from None
 
 
 def _coerce(value: Any, annotation: str, *, where: str) -> Any:

@@ -33,7 +33,9 @@ import cv2
 import numpy as np
 
 from services.common.images import grey
-from services.egomotion.base import Increment, NoiseModel, increment_with_transform, zero_increment
+from services.common.settings import setting
+from services.egomotion.base import (Increment, NoiseModel, failure_motion_setting, increment_with_transform,
+                                      noise_setting, zero_increment)
 from services.common.features import FeatureParams, TrackParams, detect_bucketed, global_shift, track
 
 logger = logging.getLogger(__name__)
@@ -43,48 +45,42 @@ SCALE_SOURCES = ("auto", "odometry", "ground", "none")
 
 @dataclass(frozen=True)
 class MonoParams(NoiseModel):
-    fast_threshold: int = 20
-    bucket_size_px: int = 50
-    features_per_bucket: int = 4
-    klt_window_px: int = 15
-    pyramid_levels: int = 3
-    forward_backward_px: float = 1.0
-    ransac_threshold_px: float = 1.0
-    min_inliers: int = 15
-    # Median residual (px) of the pure-rotation model below which a frame has no measurable translation.
-    min_parallax_px: float = 0.7
-    quality_inliers: int = 80
-    # Where metric scale comes from: auto (odometry, else ground plane, else none), odometry, ground, none.
-    scale_source: str = "auto"
-    # Height of the optical centre above the ground, metres (KITTI: 1.65); 0 means unknown.
-    camera_height_m: float = 0.0
-    # Ground points are those imaged at least this many pixels below the principal point.
-    ground_margin_px: float = 40.0
-    # Largest angle between the fitted ground normal and the camera's down axis.
-    ground_max_tilt_deg: float = 5.0
-    # Ground-plane inlier distance as a fraction of the plane's distance from the camera.
-    ground_inlier_fraction: float = 0.05
-    ground_min_points: int = 12
-    # The ground scale of a frame is the median of the last this-many per-frame estimates: single
-    # frames see few road points and scatter by ±25% on KITTI, a vehicle's speed changes slowly.
-    scale_window: int = 9
-    failure_motion: str = "zero"
+    fast_threshold: int = setting(20, ge=1, le=255, help="FAST corner threshold, grey levels, as stereo")
+    bucket_size_px: int = setting(50, ge=1, help="bucketing: side of a bucket, px")
+    features_per_bucket: int = setting(4, ge=1, help="bucketing: corners kept per bucket")
+    klt_window_px: int = setting(15, ge=3, help="Lucas–Kanade window, px")
+    pyramid_levels: int = setting(3, ge=0, help="pyramid depth for frame-to-frame tracking")
+    forward_backward_px: float = setting(1.0, ge=0.0, help="forward–backward check of the tracks, px (0: off)")
+    ransac_threshold_px: float = setting(1.0, gt=0.0, help="essential-matrix RANSAC inlier threshold, px")
+    min_inliers: int = setting(15, ge=5, help="fewer inliers is a failed frame (the essential matrix needs 5 points)")
+    min_parallax_px: float = setting(0.7, ge=0.0, help="median residual of the pure-rotation model below which a "
+                                                       "frame has no measurable translation, px")
+    quality_inliers: int = setting(80, ge=1, help="inliers at which quality saturates")
+    scale_source: str = setting("auto", choices=SCALE_SOURCES,
+                                help="where metric scale comes from: auto (odometry, else ground plane, else none), "
+                                     "odometry, ground, none")
+    camera_height_m: float = setting(0.0, ge=0.0, help="height of the optical centre above the ground, m (KITTI: "
+                                                       "1.65); 0: unknown")
+    ground_margin_px: float = setting(40.0, ge=0.0, help="ground points are those imaged at least this many px below "
+                                                         "the principal point")
+    ground_max_tilt_deg: float = setting(5.0, ge=0.0, le=90.0, help="largest angle between the fitted ground normal "
+                                                                    "and the camera's down axis, deg")
+    ground_inlier_fraction: float = setting(0.05, gt=0.0, help="ground-plane inlier distance as a fraction of the "
+                                                               "plane's distance from the camera")
+    ground_min_points: int = setting(12, ge=3, help="fewest ground points for a plane fit (a plane needs 3)")
+    # Single frames see few road points and scatter by ±25% on KITTI; a vehicle's speed changes slowly.
+    scale_window: int = setting(9, ge=1, help="frames in the running median of the ground scale")
+    failure_motion: str = failure_motion_setting()
 
     # Uncertainty per frame (base.NoiseModel): the scale comes from outside the images.
-    sigma_translation: float = 0.1
-    sigma_translation_floor: float = 0.002
-    sigma_yaw: float = 0.03
-    sigma_yaw_per_m: float = 0.01
-    sigma_yaw_floor: float = 0.003
+    sigma_translation: float = noise_setting("sigma_translation", 0.1)
+    sigma_translation_floor: float = noise_setting("sigma_translation_floor", 0.002)
+    sigma_yaw: float = noise_setting("sigma_yaw", 0.03)
+    sigma_yaw_per_m: float = noise_setting("sigma_yaw_per_m", 0.01)
+    sigma_yaw_floor: float = noise_setting("sigma_yaw_floor", 0.003)
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.scale_source not in SCALE_SOURCES:
-            raise ValueError(f"scale_source must be one of {', '.join(SCALE_SOURCES)}")
-        if self.failure_motion not in ("zero", "hold"):
-            raise ValueError("failure_motion must be 'zero' or 'hold'")
-        if self.camera_height_m < 0:
-            raise ValueError("camera_height_m must be >= 0")
         if self.scale_source == "ground" and self.camera_height_m <= 0:
             raise ValueError("scale_source 'ground' needs camera_height_m > 0")
 

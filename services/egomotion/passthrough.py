@@ -18,36 +18,30 @@ from services.egomotion.base import (
     Increment,
     NoiseModel,
     increment_with_transform,
+    noise_setting,
     zero_increment,
 )
+from services.common.settings import setting
 
 SOURCES = ("auto", "odometry", "ground_truth")
 
 
 @dataclass(frozen=True)
 class PassthroughParams(NoiseModel):
-    # Where increments come from: auto (odometry when the frame has it, else ground truth),
-    # odometry, or ground_truth.
-    source: str = "auto"
-    # Standard deviations of zero-mean Gaussian noise added per frame (m, m, rad).
-    noise_forward: float = 0.0
-    noise_left: float = 0.0
-    noise_yaw: float = 0.0
-    seed: int = 0
+    source: str = setting("auto", choices=SOURCES, help="where increments come from: auto (odometry when the frame "
+                                                        "has it, else ground truth), odometry, ground_truth")
+    noise_forward: float = setting(0.0, ge=0.0, help="standard deviation of Gaussian noise added to forward per frame, m")
+    noise_left: float = setting(0.0, ge=0.0, help="standard deviation of Gaussian noise added to left per frame, m")
+    noise_yaw: float = setting(0.0, ge=0.0, help="standard deviation of Gaussian noise added to yaw per frame, rad")
+    seed: int = setting(0, ge=0, help="noise seed: a frame's noise is drawn from (seed, seq), the same whoever "
+                                      "estimates it")
 
     # Uncertainty per frame (base.NoiseModel), to which the added noise's variances are added.
-    sigma_translation: float = 0.01
-    sigma_translation_floor: float = 0.0005
-    sigma_yaw: float = 0.01
-    sigma_yaw_per_m: float = 0.002
-    sigma_yaw_floor: float = 0.0002
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.source not in SOURCES:
-            raise ValueError(f"source must be one of {', '.join(SOURCES)}")
-        if min(self.noise_forward, self.noise_left, self.noise_yaw) < 0:
-            raise ValueError("noise standard deviations must be >= 0")
+    sigma_translation: float = noise_setting("sigma_translation", 0.01)
+    sigma_translation_floor: float = noise_setting("sigma_translation_floor", 0.0005)
+    sigma_yaw: float = noise_setting("sigma_yaw", 0.01)
+    sigma_yaw_per_m: float = noise_setting("sigma_yaw_per_m", 0.002)
+    sigma_yaw_floor: float = noise_setting("sigma_yaw_floor", 0.0002)
 
     def covariance(self, increment: Increment) -> np.ndarray | None:
         covariance = super().covariance(increment)

@@ -28,59 +28,49 @@ from typing import Any
 import numpy as np
 
 from services.common.images import grey
-from services.egomotion.base import Increment, NoiseModel, zero_increment
+from services.common.settings import setting
+from services.egomotion.base import Increment, NoiseModel, noise_setting, zero_increment
 
 @dataclass(frozen=True)
 class ScanlineParams(NoiseModel):
     """Crop regions in pixels ([min, max) columns and rows; −1 as a maximum means the image
     edge), camera field of view and rate, speed scaling and clip, shift search range."""
 
-    vtrans_image_x_min: int = 0
-    vtrans_image_x_max: int = -1
-    vtrans_image_y_min: int = 0
-    vtrans_image_y_max: int = -1
-    vrot_image_x_min: int = 0
-    vrot_image_x_max: int = -1
-    vrot_image_y_min: int = 0
-    vrot_image_y_max: int = -1
-    # Horizontal field of view over which columns are converted to degrees; None: from the
-    # camera as width/fx radians, else 50° (OpenRatSLAM's default). width/fx makes one column
-    # 1/fx radians, the true angle of a column at the image centre; the lens's real field of
-    # view, 2·atan(width/2fx), would make every rotation ~11% short on NuBot (65.9° vs 74.2°).
-    camera_fov_deg: float | None = None
-    camera_hz: float = 10.0
-    # Speed in m/s per unit of residual profile difference (OpenRatSLAM default 100).
-    vtrans_scaling: float = 100.0
-    vtrans_max: float = 20.0
-    # Profile shifts searched each way; OpenRatSLAM searches 40 columns.
-    max_shift_px: int = 40
-    # Refine the best shift to a fraction of a column by a parabola through the three lowest
-    # differences (not in the papers; off reproduces their integer shifts).
-    subpixel: bool = False
-    # Resample each profile to equal steps of viewing angle (1/fx radians) before matching, so
-    # that a turn shifts every part of the profile equally (a pinhole image stretches toward
-    # its edges: a 3° turn moves the centre 1/cos²(35°) = 1.5 times less than the edge of a
-    # 70° view). Needs the camera; not in the papers, off reproduces them.
-    equiangular: bool = False
+    vtrans_image_x_min: int = setting(0, ge=0, help="translation crop: first column, px")
+    vtrans_image_x_max: int = setting(-1, ge=-1, help="translation crop: column to stop before, px (-1: the image edge)")
+    vtrans_image_y_min: int = setting(0, ge=0, help="translation crop: first row, px")
+    vtrans_image_y_max: int = setting(-1, ge=-1, help="translation crop: row to stop before, px (-1: the image edge)")
+    vrot_image_x_min: int = setting(0, ge=0, help="rotation crop: first column, px")
+    vrot_image_x_max: int = setting(-1, ge=-1, help="rotation crop: column to stop before, px (-1: the image edge)")
+    vrot_image_y_min: int = setting(0, ge=0, help="rotation crop: first row, px")
+    vrot_image_y_max: int = setting(-1, ge=-1, help="rotation crop: row to stop before, px (-1: the image edge)")
+    # width/fx makes one column 1/fx radians, the true angle of a column at the image centre; the
+    # lens's real field of view, 2·atan(width/2fx), would make every rotation ~11% short on NuBot
+    # (65.9° vs 74.2°).
+    camera_fov_deg: float | None = setting(None, gt=0.0, le=360.0,
+                                           help="horizontal field of view for degrees per column, deg; none: width/fx "
+                                                "radians from the camera (one column = 1/fx rad), else 50 (OpenRatSLAM's)")
+    camera_hz: float = setting(10.0, gt=0.0, help="camera rate, Hz: the speed in m/s is divided by it")
+    vtrans_scaling: float = setting(100.0, ge=0.0, help="speed in m/s per unit of residual profile difference "
+                                                        "(OpenRatSLAM's 100; calibrated per dataset)")
+    vtrans_max: float = setting(20.0, ge=0.0, help="speed clip, m/s")
+    max_shift_px: int = setting(40, ge=0, help="profile shifts searched each way, columns (OpenRatSLAM searches 40)")
+    # Not in the papers; off reproduces their integer shifts.
+    subpixel: bool = setting(False, help="refine the best shift to a fraction of a column by a parabola through the "
+                                         "three lowest differences (not in the papers)")
+    # A pinhole image stretches toward its edges: a 3° turn moves the centre 1/cos²(35°) = 1.5
+    # times less than the edge of a 70° view. Not in the papers, off reproduces them.
+    equiangular: bool = setting(False, help="resample each profile to equal steps of viewing angle (1/fx rad) before "
+                                            "matching, so that a turn shifts every part equally (needs the camera; not "
+                                            "in the papers)")
 
     # Uncertainty per frame (base.NoiseModel): intensity profiles measure speed and turn coarsely
     # (on the synthetic world, 30 mm forward at 0.1 m per frame and 13 mrad yaw rms).
-    sigma_translation: float = 0.4
-    sigma_translation_floor: float = 0.005
-    sigma_yaw: float = 0.1
-    sigma_yaw_per_m: float = 0.0
-    sigma_yaw_floor: float = 0.02
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.camera_hz <= 0:
-            raise ValueError("camera_hz must be positive")
-        if self.max_shift_px < 0:
-            raise ValueError("max_shift_px must be >= 0")
-        if self.vtrans_scaling < 0 or self.vtrans_max < 0:
-            raise ValueError("vtrans_scaling and vtrans_max must be >= 0")
-        if self.camera_fov_deg is not None and not 0 < self.camera_fov_deg <= 360:
-            raise ValueError("camera_fov_deg must be in (0, 360]")
+    sigma_translation: float = noise_setting("sigma_translation", 0.4)
+    sigma_translation_floor: float = noise_setting("sigma_translation_floor", 0.005)
+    sigma_yaw: float = noise_setting("sigma_yaw", 0.1)
+    sigma_yaw_per_m: float = noise_setting("sigma_yaw_per_m", 0.0)
+    sigma_yaw_floor: float = noise_setting("sigma_yaw_floor", 0.02)
 
 
 def intensity_profile(image: np.ndarray, x_min: int, x_max: int, y_min: int, y_max: int) -> np.ndarray:

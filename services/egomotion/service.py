@@ -27,10 +27,10 @@ from services.common import topics
 from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.settings import add_flag
-from services.common.stages import ESTIMATORS as ESTIMATOR_NAMES
-from services.egomotion import ESTIMATORS, SHARD_SETTINGS, make_estimator, resolve_estimator, resolve_sharding
+from services.common.settings import add_field_flag, add_flag
+from services.egomotion import ESTIMATORS, SHARD_SETTINGS, EgomotionConfig, make_estimator, resolve_estimator, resolve_sharding
 from services.egomotion.base import params_from_dict
+from services.egomotion.mono import MonoParams
 from services.egomotion.shards import BlockEstimation, FrameByFrame, FrameHistory, ShardParams, block_owner
 from services.common.frames import Camera, Frame
 
@@ -172,12 +172,10 @@ class EgomotionService(Service):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--estimator", choices=ESTIMATOR_NAMES,
-                        help="ego-motion estimator (default: the preset's, else scanline)")
+    add_field_flag(parser, EgomotionConfig, "estimator")
     parser.add_argument("--preset", help="estimator parameters for a dataset: nubot, kitti, stlucia, synthetic, campus, "
                                          "or a preset file")
-    parser.add_argument("--camera-height", type=float, metavar="M",
-                        help="camera height above the ground, m (the mono estimator's camera_height_m: a metric scale)")
+    add_flag(parser, MonoParams, "camera_height_m", flag="--camera-height", dest="camera_height", metavar="M")
     for name in SHARD_SETTINGS:   # --instances, --shard-block
         add_flag(parser, ShardParams, name, metavar="N")
 

@@ -45,62 +45,56 @@ from services.egomotion.base import (
     EgomotionError,
     Increment,
     NoiseModel,
+    failure_motion_setting,
     increment_with_transform,
     zero_increment,
 )
+from services.common.settings import setting
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class StereoParams(NoiseModel):
-    fast_threshold: int = 20
-    bucket_size_px: int = 50
-    features_per_bucket: int = 4
-    klt_window_px: int = 11
-    # Stereo matching needs a deeper pyramid than frame-to-frame tracking: disparities of close
-    # objects reach ~100 px (NuBot: f·b = 59 px·m, so 0.6 m away is 99 px).
-    stereo_pyramid_levels: int = 4
-    track_pyramid_levels: int = 3
-    forward_backward_px: float = 1.0
-    # Frame-to-frame tracks are refined for a gain and offset of brightness per window
-    # (features.refine_affine_brightness): under a lens vignette, plain Lucas–Kanade makes
-    # forward motion 0.5 % short on the synthetic world.
-    affine_brightness: bool = True
-    # Forward–backward check of the left–right matches (0: off, the row check alone).
-    stereo_forward_backward_px: float = 1.0
-    max_row_error_px: float = 1.0
-    min_disparity_px: float = 0.5
-    ransac_reprojection_px: float = 2.0  # LIBVISO2's inlier threshold
-    ransac_iterations: int = 200  # LIBVISO2's RANSAC iterations
-    min_inliers: int = 12
-    # Below this quality the tracking is retried seeded by the global image shift.
-    retry_below_quality: float = 0.3
-    # Inlier count at which quality saturates; quality = inlier ratio × min(1, inliers / this).
-    quality_inliers: int = 80
-    # Seed frame-to-frame tracking with the previous motion (constant-velocity prediction).
-    predict: bool = True
-    # Keep the last frame's inlier tracks as this frame's features (buckets topped up with new
-    # corners) and match them into the right image from the disparity their 3D points predict,
-    # with this shallower pyramid; false: detect every frame afresh (LIBVISO2's way). Steps 1–2
-    # of the module docstring.
-    carry_tracks: bool = True
-    carried_stereo_pyramid_levels: int = 1
-    # What a failed frame reports: "zero" motion or "hold" the last motion (both with quality 0).
-    failure_motion: str = "zero"
+    fast_threshold: int = setting(20, ge=1, le=255, help="FAST corner threshold, grey levels (lowered to a quarter "
+                                                          "once if there are fewer corners than buckets)")
+    bucket_size_px: int = setting(50, ge=1, help="bucketing: side of a bucket, px")
+    features_per_bucket: int = setting(4, ge=1, help="bucketing: corners kept per bucket")
+    klt_window_px: int = setting(11, ge=3, help="Lucas–Kanade window, px")
+    # Disparities of close objects reach ~100 px (NuBot: f·b = 59 px·m, so 0.6 m away is 99 px).
+    stereo_pyramid_levels: int = setting(4, ge=0, help="pyramid depth for left–right matching of new corners "
+                                                       "(disparities up to ~100 px)")
+    track_pyramid_levels: int = setting(3, ge=0, help="pyramid depth for frame-to-frame tracking")
+    forward_backward_px: float = setting(1.0, ge=0.0, help="forward–backward check of frame-to-frame tracks, px (0: off)")
+    # features.refine_affine_brightness: under a lens vignette, plain Lucas–Kanade makes forward
+    # motion 0.5 % short on the synthetic world.
+    affine_brightness: bool = setting(True, help="refine frame-to-frame tracks letting each window's brightness change "
+                                                 "by a gain and an offset (false: plain Lucas–Kanade)")
+    stereo_forward_backward_px: float = setting(1.0, ge=0.0, help="forward–backward check of the left–right matches, "
+                                                                  "px (0: off, the row check alone)")
+    max_row_error_px: float = setting(1.0, ge=0.0, help="epipolar check on rectified images: largest row difference "
+                                                        "of a left–right match, px")
+    min_disparity_px: float = setting(0.5, ge=0.0, help="smallest disparity of a triangulated point, px")
+    ransac_reprojection_px: float = setting(2.0, gt=0.0, help="RANSAC inlier threshold, px of reprojection error "
+                                                              "(LIBVISO2's)")
+    ransac_iterations: int = setting(200, ge=1, help="RANSAC iterations (LIBVISO2's)")
+    min_inliers: int = setting(12, ge=4, help="fewer inliers is a failed frame (PnP needs 4 points)")
+    retry_below_quality: float = setting(0.3, ge=0.0, le=1.0, help="below this quality the tracking is retried seeded "
+                                                                   "by the global image shift (phase correlation)")
+    quality_inliers: int = setting(80, ge=1, help="inliers at which quality saturates (quality = inlier ratio × "
+                                                  "min(1, inliers / this))")
+    predict: bool = setting(True, help="seed frame-to-frame tracking with the last motion (constant velocity)")
+    # Steps 1–2 of the module docstring.
+    carry_tracks: bool = setting(True, help="keep the last frame's inlier tracks as this frame's features, matched "
+                                            "into the right image from their predicted disparity (false: detect "
+                                            "afresh every frame, LIBVISO2's way)")
+    carried_stereo_pyramid_levels: int = setting(1, ge=0, help="pyramid depth for left–right matching of carried "
+                                                               "features (searched from their predicted disparity)")
+    failure_motion: str = failure_motion_setting()
 
     # Uncertainty per frame (base.NoiseModel): the synthetic world's per-frame errors at 0.1 m per
     # frame are 0.9 mm forward, 1.2 mm left, 0.4 mrad yaw rms (1.3, 1.6, 0.5 with plain Lucas–Kanade);
     # these defaults are about twice the latter.
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.failure_motion not in ("zero", "hold"):
-            raise ValueError("failure_motion must be 'zero' or 'hold'")
-        if self.min_inliers < 4:
-            raise ValueError("min_inliers must be at least 4 (PnP needs 4 points)")
-        if self.carried_stereo_pyramid_levels < 0:
-            raise ValueError("carried_stereo_pyramid_levels must be >= 0")
 
     def features(self) -> FeatureParams:
         return FeatureParams(self.fast_threshold, self.bucket_size_px, self.features_per_bucket)

@@ -156,7 +156,7 @@ def run_offline(
     blocks of that many frames, as the egomotion service does (shards.py), for the increments a
     pipeline publishes."""
     from services.common.config import is_preset_file, preset_applies
-    from services.egomotion import ESTIMATORS, load_estimator_config, make_estimator, preset_names
+    from services.egomotion import ESTIMATORS, make_estimator, preset_names, resolve_estimator
     from services.evaluation.results import results_dir
     from services.source import spec as source_spec
 
@@ -170,12 +170,10 @@ def run_offline(
     else:
         estimator_preset = preset if preset in preset_names() else None
         source_preset = preset if preset in source_spec.preset_names() else None
-    default, all_params = load_estimator_config(estimator_preset, config_file)
-    name = estimator or default
-    if name is None:
-        raise EstimatorConfigError(f"no estimator given: use --estimator ({', '.join(ESTIMATORS)}) or a preset that names one")
-    if name not in ESTIMATORS:
-        raise EstimatorConfigError(f"unknown estimator {name!r} (available: {', '.join(ESTIMATORS)})")
+    if estimator is not None and estimator not in ESTIMATORS:
+        raise EstimatorConfigError(f"unknown estimator {estimator!r} (available: {', '.join(ESTIMATORS)})")
+    # As the egomotion service resolves it: defaults < preset < config file < GRIDSLAM_EGOMOTION_* < --estimator
+    name, params = resolve_estimator(estimator, estimator_preset, config_file)
     if n_frames is not None:
         if n_frames < 1:
             raise EstimatorConfigError(f"--n-frames must be at least 1, got {n_frames}")
@@ -191,12 +189,12 @@ def run_offline(
         world=world,
         topics=topics,   # a ROS bag's topics (source/spec.py)
     )
-    estimator_instance = make_estimator(name, getattr(source, "camera", None), all_params[name])
+    estimator_instance = make_estimator(name, getattr(source, "camera", None), params)
     if shard_block is not None:
         from services.egomotion.shards import BlockEstimator
 
         estimator_instance = BlockEstimator(lambda frame: make_estimator(name, getattr(frame, "camera", None) or source.camera,
-                                                                         all_params[name]),
+                                                                         params),
                                             shard_block, name, estimator_instance.params)
     reference_trajectory = load_reference(reference) if reference is not None else None
     folder = results_dir(out, root=results_root)

@@ -31,9 +31,10 @@ from services.common.errors import ConfigError, GridslamError
 from services.common.journal import SESSION, read_records
 from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, map_files,
                                      session_base)
-from services.common.runtime import DEFAULT_ROUTER, RuntimeConfig
+from services.common.run_settings import RunParams
+from services.common.runtime import RuntimeConfig
 from services.common.settings import config_fields
-from services.common.stages import CLOSURES, ESTIMATORS, INTEGRATORS, MAP_OPTIMIZERS, GridStageParams
+from services.common.stages import CLOSURES, INTEGRATORS, MAP_OPTIMIZERS, GridStageParams
 from services.egomotion import resolve_estimator, resolve_sharding
 from services.evaluation.results import results_dir, write_config
 from services.evaluation.trajectory import read_tum
@@ -77,32 +78,9 @@ class _RunFields(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    source: str = Field(description="Source spec: kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED, "
-                                    "rosbag:PATH, ros2:TOPIC.")
-    egomotion: Literal[ESTIMATORS] | None = Field(None, description="Ego-motion estimator (default: the preset's).")
     integrator: Literal[INTEGRATORS] = Field("grid", description="Path integrator.")
-    preset: str | None = Field(
-        None, description="Dataset preset passed to every service that has one, or a preset file (base preset and "
-                          "per-service tables, docs/sources.md).")
-    calibration: Path | None = Field(None, description="Calibration TOML file for the source (overrides the preset's).")
     fov: float | None = Field(None, gt=0, lt=180, description="Horizontal field of view (degrees) of the camera assumed for "
                                                               "an image folder, video or camera without a calibration.")
-    camera_height: float | None = Field(
-        None, gt=0, description="Height of the camera above the ground, m: the mono estimator's metric scale (ground plane).")
-    config_file: Path | None = Field(None, description="gridslam TOML config file passed to every service.")
-    n_frames: int | None = Field(None, ge=1, description="Process only this many frames.")
-    start: int = Field(0, ge=0, description="First frame index.")
-    step: int = Field(1, ge=1, description="Take every step-th frame.")
-    listen: str = Field(DEFAULT_ROUTER, description="Endpoint of the run's router (outside clients connect here).")
-    connect: str | None = Field(
-        None, description="Use the router already at this endpoint instead of starting one (several robots on one network).")
-    robot: str = Field("robot0", description="Robot name.")
-    window: int = Field(8, ge=1, description="Frames in flight between the source and the last stage.")
-    egomotion_instances: int = Field(
-        1, ge=1, le=16, description="Ego-motion instances sharing the frames (docs/pipeline.md, sharded ego-motion): one "
-                                    "runs the estimator frame after frame; more run it in blocks, and at least N + 1 "
-                                    "blocks of frames are kept in flight.")
-    mapping: bool = Field(True, description="Run loopclosure and expmap (the map stage).")
     closure: Literal[CLOSURES] | None = Field(
         None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
                           "default: the services' (metric).")
@@ -119,14 +97,9 @@ class _RunFields(BaseModel):
     place_recognition: Literal[PLACE_RECOGNITIONS] | None = Field(
         None, description="How loop closure recognises places: scanline, bow or sequence; default: the loopclosure's "
                           "(its preset's, or bow).")
-    view: str | None = Field(None, description="Also run the viewer, serving HTTP on this host:port.")
-    stall_timeout: float = Field(60.0, gt=0, description="Fail when no frame completes for this many seconds.")
     world: dict[str, int | float | bool | str] = Field(
         default_factory=dict, description="Synthetic world settings for the source (--laps, --world KEY=VALUE), over the "
                                           "preset's and the config file's [source] keys.")
-    mcap: bool = Field(True, description="Write run.mcap (ROS 2 messages for Foxglove and ros2 bag play; extra `ros`).")
-    foxglove: int | None = Field(None, ge=0, le=65535, description="Also serve the run live to Foxglove on this port (loopback).")
-    ros2: bool = Field(False, description="Also run the ros2 service: the run as a node of a ROS 2 graph over Zenoh (docs/ecosystem.md).")
     image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
     right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
     camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
@@ -134,12 +107,13 @@ class _RunFields(BaseModel):
     stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
 
 
-# The settings the run passes on to a service, declared once with it; None: the service's. The
-# grid-cell stage's choices (GridStageParams: --decoder, --step-source, --modules, --heading) and
-# the ROS 2 graph settings of the ros2 service and of a ros2: source (GraphParams: --ros-domain-id,
+# The run's own settings (RunParams: --source, --stride, --egomotion-instances, ...) and the ones
+# it passes on to a service, declared once with it; None: the service's. The grid-cell stage's
+# choices (GridStageParams: --decoder, --step-source, --modules, --heading) and the ROS 2 graph
+# settings of the ros2 service and of a ros2: source (GraphParams: --ros-domain-id,
 # --ros-namespace, --ros-distro, --ros2-keys).
 _GRID_STAGE = config_fields(GridStageParams, optional=True)
-RunConfig = create_model("RunConfig", __base__=_RunFields, __doc__=_RunFields.__doc__,
+RunConfig = create_model("RunConfig", __base__=_RunFields, __doc__=_RunFields.__doc__, **config_fields(RunParams),
                          decoder=_GRID_STAGE["decoder"], step_source=_GRID_STAGE["step"], modules=_GRID_STAGE["modules"],
                          heading=_GRID_STAGE["heading"], **config_fields(GraphParams, optional=True))
 

@@ -11,7 +11,7 @@ import zenoh
 from schemas import CameraFrame, EgoMotion, Header, Time
 from services.common import codec, topics
 from services.common.runtime import RuntimeConfig
-from services.egomotion import load_estimator_config
+from services.egomotion import egomotion_config, estimator_params
 from services.egomotion.service import EgomotionService
 from services.source.service import frame_message
 from services.source.spec import open_source
@@ -32,7 +32,7 @@ def test_instances_share_blocks_and_one_takes_over_what_the_other_estimated(fram
     port = free_port()
     router = router_session(port)
     runtime = RuntimeConfig(connect=[endpoint(port)])
-    params = load_estimator_config("nubot")[1]["stereo"]
+    params = estimator_params(egomotion_config("nubot", environ={}), "stereo")
     services = {name: EgomotionService(runtime, "stereo", params, instance=name, shard_block=BLOCK) for name in ("a", "b")}
     threads = {name: threading.Thread(target=service.run) for name, service in services.items()}
     client = client_session(port)
@@ -111,7 +111,7 @@ def test_a_restarted_instance_rebuilds_its_block_from_the_acknowledged_frames_se
     port = free_port()
     router = router_session(port)
     runtime = RuntimeConfig(connect=[endpoint(port)])
-    params = load_estimator_config("nubot")[1]["stereo"]
+    params = estimator_params(egomotion_config("nubot", environ={}), "stereo")
     client = client_session(port)
     published: dict[int, list[EgoMotion]] = {}
     lock = threading.Lock()

@@ -5,13 +5,14 @@ import math
 import numpy as np
 import pytest
 
+from services.common.errors import ConfigError
 from services.egomotion import (
     ESTIMATORS,
     EstimatorConfigError,
-    load_estimator_config,
+    egomotion_config,
+    estimator_params,
     make_estimator,
     preset_names,
-    read_config_file,
 )
 from services.common.geometry import (
     increment_from_transform,
@@ -75,40 +76,46 @@ def test_stereo_needs_a_baseline_and_mono_a_camera():
     assert make_estimator("scanline", None).name == "scanline"
 
 
+def loaded(preset=None, config_file=None):
+    """The default estimator and every estimator's parameters the preset and the config file give."""
+    config = egomotion_config(preset, config_file, environ={})
+    return config.estimator, {name: estimator_params(config, name) for name in ESTIMATORS}
+
+
 def test_presets_load_and_build_every_estimator():
     assert set(preset_names()) >= {"nubot", "kitti", "stlucia", "synthetic"}
     camera = pinhole(640, 480)
     for preset in preset_names():
-        default, params = load_estimator_config(preset)
+        default, params = loaded(preset)
         assert default in ESTIMATORS
         for name in ESTIMATORS:
             assert make_estimator(name, camera, params[name]).name == name
     # St Lucia keeps OpenRatSLAM's published values.
-    _, params = load_estimator_config("stlucia")
+    _, params = loaded("stlucia")
     assert params["scanline"]["vtrans_scaling"] == 1000.0 and params["scanline"]["camera_fov_deg"] == 53.0
 
 
 def test_config_file_overrides_preset_and_bad_files_name_themselves(tmp_path):
     good = tmp_path / "mine.toml"
     good.write_text('estimator = "scanline"\n[scanline]\nmax_shift_px = 7\n')
-    default, params = load_estimator_config("nubot", good)
+    default, params = loaded("nubot", good)
     assert default == "scanline"
     assert params["scanline"]["max_shift_px"] == 7 and params["scanline"]["vtrans_scaling"] == 77.0
     bad = tmp_path / "bad.toml"
-    bad.write_text("[sterio]\nx = 1\n")
-    with pytest.raises(EstimatorConfigError, match=r"bad.toml: unknown key 'sterio'"):
-        read_config_file(bad)
+    bad.write_text('estimator = "stereo"\n[sterio]\nx = 1\n')
+    with pytest.raises(ConfigError, match=r"\[egomotion\] sterio: Extra inputs are not permitted \(from .*bad.toml\)"):
+        loaded(None, bad)
     bad.write_text("[stereo]\nmin_inliers = 'many'\n")
-    with pytest.raises(EstimatorConfigError, match=r"bad.toml: \[stereo\]: min_inliers must be an integer"):
-        read_config_file(bad)
+    with pytest.raises(ConfigError, match=r"\[egomotion.stereo\] min_inliers: Input should be a valid integer.*'many'.*bad.toml"):
+        loaded(None, bad)
     whole = tmp_path / "run.toml"   # a whole run's config file: its [egomotion] table
     whole.write_text('[source]\nlaps = 2\n[egomotion]\nestimator = "scanline"\ninstances = 2\n'
                      '[egomotion.scanline]\nmax_shift_px = 7\n')
-    assert load_estimator_config("nubot", whole) == (default, params)
-    with pytest.raises(EstimatorConfigError, match="config file not found"):
-        read_config_file(tmp_path / "absent.toml")
-    with pytest.raises(EstimatorConfigError, match="unknown estimator preset"):
-        load_estimator_config("mars")
+    assert loaded("nubot", whole) == (default, params)
+    with pytest.raises(ConfigError, match="config file not found"):
+        loaded(None, tmp_path / "absent.toml")
+    with pytest.raises(ConfigError, match="unknown preset 'mars' for egomotion"):
+        loaded("mars")
 
 
 def test_every_parameter_is_documented():
@@ -141,24 +148,22 @@ def test_every_parameter_is_declared_with_help_and_a_value_out_of_bounds_names_i
             if field.type == "str":
                 assert field.metadata.get("choices"), f"{name}.{field.name} has no choices"
     path = tmp_path / "bad.toml"
-    cases = [("stereo", "ransac_iterations", "0", "greater than or equal to 1"),
-             ("stereo", "retry_below_quality", "1.5", "less than or equal to 1"),
-             ("scanline", "camera_hz", "0.0", "greater than 0"),
-             ("mono", "scale_source", '"sky"', "'auto', 'odometry', 'ground' or 'none'"),
-             ("passthrough", "noise_yaw", "-0.1", "greater than or equal to 0"),
-             ("mono", "sigma_yaw", "-1.0", "greater than or equal to 0")]
-    for name, key, text, says in cases:
-        path.write_text(f"[egomotion.{name}]\n{key} = {text}\n")
+    cases = [("stereo", "ransac_iterations", 0, "greater than or equal to 1"),
+             ("stereo", "retry_below_quality", 1.5, "less than or equal to 1"),
+             ("scanline", "camera_hz", 0.0, "greater than 0"),
+             ("mono", "scale_source", "sky", "'auto', 'odometry', 'ground' or 'none'"),
+             ("passthrough", "noise_yaw", -0.1, "greater than or equal to 0"),
+             ("mono", "sigma_yaw", -1.0, "greater than or equal to 0")]
+    for name, key, value, says in cases:
+        path.write_text(f"[egomotion.{name}]\n{key} = {value!r}\n".replace("'", '"'))
         with pytest.raises(ConfigError) as raised:
             egomotion_config(config_file=path, environ={})
         message = str(raised.value)
         assert "\n" not in message and message.startswith(f"[egomotion.{name}] {key}: ") and says in message, message
         assert str(path) in message
-        value = {"true": True}.get(text, text.strip('"'))
-        value = value if name == "mono" and key == "scale_source" else float(value)
-        with pytest.raises(EstimatorConfigError, match=rf"{name} parameters: invalid {key} = "):
-            make_estimator(name, pinhole(320, 240, baseline=0.1), {key: int(value) if key == "ransac_iterations" else value})
-    # The same file shape as a preset of one's own (no [egomotion] around it) is checked alike.
+        with pytest.raises(EstimatorConfigError, match=rf"^{name} parameters: invalid {key} = "):
+            make_estimator(name, pinhole(320, 240, baseline=0.1), {key: value})
+    # A file of the table's own shape (no [egomotion] around it, as a preset) is checked alike.
     path.write_text("[stereo]\nransac_iterations = -3\n")
     with pytest.raises(ConfigError, match=r"^\[egomotion.stereo\] ransac_iterations: Input should be greater than or equal to 1"):
         egomotion_config(config_file=path, environ={})

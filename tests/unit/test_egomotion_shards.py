@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from services.egomotion import EgomotionError, load_estimator_config, make_estimator
+from services.egomotion import EgomotionError, egomotion_config, estimator_params, make_estimator
 from services.egomotion import ESTIMATORS
 from services.egomotion.shards import (BLOCK, BlockEstimation, BlockEstimator, FrameByFrame, FrameHistory, ShardParams,
                                        block_owner, block_size)
@@ -24,7 +24,8 @@ def frames(shared_data):
 
 @pytest.fixture(scope="module")
 def params():
-    return load_estimator_config("nubot")[1]
+    config = egomotion_config("nubot", environ={})
+    return {name: estimator_params(config, name) for name in ESTIMATORS}
 
 
 def blocks(name, params, block, **options):

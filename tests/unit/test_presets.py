@@ -12,7 +12,7 @@ import pytest
 from services.cli.service import service_parser
 from services.common.config import describe_preset, load_config, preset_applies, preset_values, read_toml
 from services.common.errors import ConfigError
-from services.egomotion import load_estimator_config
+from services.egomotion import egomotion_config
 from services.pipeline.runner import RunConfig, log_preset, service_args, source_args, source_settings
 from services.source.service import config_from_args
 from services.source.spec import load_preset, open_source, parse_world_flags
@@ -80,8 +80,9 @@ def test_a_preset_file_applies_to_the_services_whose_keys_it_holds(tmp_path):
     assert preset_values("gridcells", path) == synthetic["gridcells"]  # no table: the base's
     camera, settings = load_preset(path)
     assert settings["laps"] == 4 and settings["speed"] == 0.1 and camera.baseline == 0.12
-    default, params = load_estimator_config(str(path))
-    assert default == "stereo" and params["stereo"] == {"bucket_size_px": 40, "features_per_bucket": 4}  # one level deep
+    egomotion = egomotion_config(str(path), environ={})
+    assert egomotion.estimator == "stereo"
+    assert egomotion.stereo.model_dump(exclude_unset=True) == {"bucket_size_px": 40, "features_per_bucket": 4}  # one level deep
     from services.loopclosure.service import LoopClosureConfig
 
     assert load_config(LoopClosureConfig, "loopclosure", preset=str(path)).match_threshold == 0.05

@@ -267,3 +267,89 @@ def test_the_process_settings_are_read_once_and_checked(tmp_path):
     assert cache_folder({"GRIDSLAM_CACHE": str(tmp_path)}) == tmp_path
     assert cache_folder({"XDG_CACHE_HOME": str(tmp_path)}) == tmp_path / "gridslam"
     assert cache_folder({}) == Path.home() / ".cache" / "gridslam"
+
+
+def flag_actions(parser) -> dict[str, object]:
+    """dest → argparse action of every flag of ``parser``."""
+    return {action.dest: action for action in parser._actions if action.option_strings}
+
+
+def sub_parser(*names):
+    from services.cli import build_parser
+
+    parser = build_parser()
+    for name in names:
+        parser = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction").choices[name]
+    return parser
+
+
+def test_the_run_settings_are_declared_once():
+    """[run]'s own keys and `gridslam run`'s flags come from one declaration (RunParams): the
+    same help, default and bounds; a key with no flag (window, stall_timeout) is config only."""
+    from services.cli.run import RUN_DESTS
+    from services.common.run_settings import RunOutputParams, RunParams
+    from services.pipeline.runner import RunConfig
+
+    actions = flag_actions(sub_parser("run"))
+    flagless = set()
+    for field in dataclasses.fields(RunParams):
+        model_field = RunConfig.model_fields[field.name]
+        assert model_field.description == field.metadata["help"], field.name
+        default = model_field.get_default() if not model_field.is_required() else dataclasses.MISSING
+        assert default == field.default, field.name
+        for bound in ("ge", "gt", "le", "lt"):
+            if field.metadata[bound] is not None:
+                assert any(getattr(m, bound, None) == field.metadata[bound] for m in model_field.metadata), (field.name, bound)
+        action = actions.get(RUN_DESTS.get(field.name, field.name))
+        if action is None:
+            flagless.add(field.name)
+            continue
+        assert action.help.startswith(field.metadata["help"].replace("%", "%%")), field.name
+        assert action.default is None, field.name   # not given: [run], the environment or the default decide
+    assert flagless == {"window", "stall_timeout"}
+    for field in dataclasses.fields(RunOutputParams):   # command line only
+        assert field.name not in RunConfig.model_fields and actions[field.name].help.startswith(field.metadata["help"])
+
+
+def test_the_runtime_and_service_flags_come_from_their_declarations():
+    from services.cli.service import service_parser
+    from services.common.runtime import RuntimeConfig
+    from services.common.service import ServiceParams
+
+    actions = flag_actions(service_parser("egomotion")[0])
+    for name, field in RuntimeConfig.model_fields.items():
+        assert actions[name].help.startswith(field.description.rstrip(".")), name
+        assert actions[name].default is None, name
+    assert actions["instance"].help.startswith(dataclasses.fields(ServiceParams)[0].metadata["help"])
+
+
+def test_the_offline_commands_flags_come_from_their_declarations():
+    """integrate, simulate and map: each flag's help and default are its declaration's, and a
+    value outside the declared bounds is refused as it is parsed, naming the flag."""
+    from services.cli.integrate import IntegrateParams, NetworkRunParams
+    from services.cli.map import BuildParams, ExportParams, RouteParams, SweepParams
+    from services.cli.simulate import SimulateParams
+    from services.common.stages import GridStageParams
+
+    commands = {("integrate",): (IntegrateParams, NetworkRunParams, GridStageParams),
+                ("simulate",): (SimulateParams, NetworkRunParams),
+                ("map", "build"): (BuildParams,), ("map", "sweep"): (SweepParams,),
+                ("map", "route"): (RouteParams,), ("map", "export"): (ExportParams,)}
+    for names, declarations in commands.items():
+        actions = flag_actions(sub_parser(*names))
+        for params in declarations:
+            for field in dataclasses.fields(params):
+                if params is GridStageParams and field.name == "integrator":
+                    continue   # integrate runs the grid (and dead reckoning beside it)
+                if params is BuildParams and names == ("map", "sweep") and field.name in ("out", "title"):
+                    continue   # build's only
+                action = actions[field.name]
+                assert action.help.startswith(field.metadata["help"].replace("%", "%%").rstrip(".")), (names, field.name)
+                if field.default is not dataclasses.MISSING:
+                    assert action.default == field.default, (names, field.name)
+    from services.cli import build_parser
+
+    for argv in (["integrate", "m.csv", "--noise-trans", "-0.1"], ["simulate", "--n-frames", "0"],
+                 ["map", "build", "--images", "x", "--odometry", "o.csv", "--out", "d", "--same-place-radius", "0"]):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(argv)
