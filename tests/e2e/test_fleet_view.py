@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import subprocess
 import threading
@@ -17,8 +18,9 @@ from base64 import b64decode
 import pytest
 
 from services.evaluation.trajectory import read_tum
+from tests.browser import Browser, chromium_and_driver
 from tests.extras import require
-from tests.netutil import endpoint, free_port, start, wait_for
+from tests.netutil import REPO, endpoint, free_port, start, wait_for
 
 pytestmark = pytest.mark.e2e
 
@@ -113,6 +115,39 @@ def test_foxglove_publishes_each_joined_robots_pose_and_path_in_the_map_frame(fl
         end = path.poses[-1].pose.position
         assert (end.x, end.y) == (last.x, last.y)
     assert abs(len(received["messages"]["/fleet/b/pose"]) - metrics["online_error_after_join_m"]["b"]["frames"]) <= 2
+
+
+# What the page draws of the fleet (services/viewer/static/viewer.js, drawFleet).
+FLEET_PAGE = """
+const box = (element) => { const b = element.getBBox(); return [Math.round(b.width), Math.round(b.height)]; };
+const tracks = [...document.querySelectorAll('#fleet-tracks path')];
+return {
+  hidden: document.getElementById('fleet-panel').hidden,
+  tracks: Object.fromEntries(tracks.map((p) => [p.dataset.robot, [Number(p.dataset.count), box(p), p.style.stroke]])),
+  poses: [...document.querySelectorAll('#fleet-poses polygon')].map((p) => p.dataset.robot),
+  closures: Number(document.getElementById('fleet-closures').dataset.count),
+  legend: [...document.querySelectorAll('#fleet-legend li')].map((li) => li.textContent),
+};
+"""
+SCREENSHOT = REPO / "docs" / "img" / "viewer-fleet.png"
+
+
+def test_a_browser_draws_both_robots_in_the_fleet_frame_each_in_its_colour(fleet_run, tmp_path):
+    chromium, chromedriver = chromium_and_driver()
+    browser = Browser(chromium, chromedriver, tmp_path / "profile")
+    try:
+        browser.open(f"http://127.0.0.1:{fleet_run['ports']['viewer']}/")
+        page = wait_for(lambda: (p := browser.script(FLEET_PAGE)) and len(p["tracks"]) == 2 and p, timeout=20, period=0.3)
+        assert not page["hidden"] and sorted(page["poses"]) == ["a", "b"]
+        (count_a, box_a, colour_a), (count_b, _, colour_b) = page["tracks"]["a"], page["tracks"]["b"]
+        assert count_a > 100 and count_b > 20 and colour_a != colour_b
+        assert box_a[0] > 200 and box_a[1] > 100   # robot a's lap of the corridor, on screen, not a dot
+        assert page["closures"] > 0   # the accepted inter-robot closures between the two robots
+        assert page["legend"][0].startswith("robot a · fleet frame") and "robot b · joined at frame" in page["legend"][1]
+        target = SCREENSHOT if os.environ.get("GRIDSLAM_UPDATE_SCREENSHOT") == "1" else tmp_path / "viewer-fleet.png"
+        target.write_bytes(browser.screenshot())
+    finally:
+        browser.close()
 
 
 def test_ctrl_c_ends_the_served_fleet(fleet_run):
