@@ -110,9 +110,10 @@ function fleetColour(name) {
 function showFleetLegend(closures) {
   const items = [...fleetRobots.keys()].sort().map((name) => {
     const robot = fleetRobots.get(name);
-    const state = robot.joined
-      ? (robot.joined_at === null || robot.joined_at === undefined ? "fleet frame" : `joined at frame ${robot.joined_at}`)
-      : "not joined: in its own frame, not drawn";
+    // The fleet frame is the map frame of the robot whose part holds itself (robot a).
+    const state = !robot.joined ? "not joined: in its own frame, not drawn"
+      : robot.part === name || robot.joined_at === null || robot.joined_at === undefined ? "fleet frame"
+      : `joined at frame ${robot.joined_at}`;
     return `<li class="${robot.joined ? "joined" : "unjoined"}" data-robot="${name}"><span class="swatch" ` +
       `style="background:${fleetColour(name)}"></span>robot ${name} · ${state} · ${robot.experiences} experiences</li>`;
   });
