@@ -5,9 +5,9 @@
 #
 # OUTDIR receives a private certificate authority (ca.pem, ca.key) and, signed by it, one
 # certificate and key per role: router.pem/.key for the Zenoh router(s), and for the clients
-# source, egomotion, gridcells, loopclosure, expmap, viewer (the pipeline services), operator
-# (`gridslam health`, `gridslam echo`) and observer (an outside client that may only read
-# poses and the map). The common name of each client certificate is `gridslam-<role>`; the
+# source, egomotion, gridcells, loopclosure, expmap, viewer (the pipeline services), fleetmap
+# (the fleet map over several robots' maps), operator (`gridslam health`, `gridslam echo`) and
+# observer (an outside client that may only read poses and the maps). The common name of each client certificate is `gridslam-<role>`; the
 # router's access control (deploy/acl/router.json5) grants rights by that name.
 #
 # The router certificate names `router` (its compose service name), `localhost` and
@@ -24,7 +24,7 @@ command -v openssl >/dev/null || { echo "make-certs.sh: openssl not found (apt-g
 
 out=$1; shift
 days=${DAYS:-825}
-roles=${ROLES:-"source egomotion gridcells loopclosure expmap viewer operator observer"}
+roles=${ROLES:-"source egomotion gridcells loopclosure expmap viewer fleetmap operator observer"}
 mkdir -p "$out"
 umask 077   # private keys readable by their owner only
 

@@ -38,8 +38,9 @@ from services.evaluation.revisits import TRUE_CLOSURE_M, same_place
 from services.evaluation.trajectory import Trajectory, read_tum, write_tum
 from services.expmap.export import read_log
 from services.fleetmap.store import read_fleet_log
-from services.pipeline.runner import (STARTUP_TIMEOUT_S, RunConfig, RunError, Supervisor, check_port_free, clear_previous_run,
-                                      wait_port_open)
+from services.pipeline.runner import (STARTUP_TIMEOUT_S, RunConfig, RunError, Serving, Supervisor, check_port_free,
+                                      clear_previous_run, wait_port_open)
+from services.ros.foxglove import check_available as check_foxglove_available
 
 log = logging.getLogger(__name__)
 
@@ -142,11 +143,27 @@ class FleetRecorder:
         return set(health.live_services(self.session, timeout=1.0))
 
 
+def observer_args(config: RunConfig, name: str, router: str, frame_robot: str) -> list[str]:
+    """`gridslam service viewer|foxglove ... --fleet`: one server for the whole fleet, showing every
+    robot in the fleet frame (and the first robot's own pipeline, in the viewer's other panels)."""
+    args = ["service", name, "-e", router, "--robot", frame_robot, "--instance", name, "--fleet"]
+    args += ["--http", config.view] if name == "viewer" else ["--port", str(config.foxglove)]
+    if config.config_file is not None:
+        args += ["--config", str(config.config_file)]
+    return args
+
+
 def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | None = None, progress=None,
-              overwrite: bool = False, announce=None) -> tuple[Path, dict]:
-    """Run the fleet; its results folder and metrics."""
+              overwrite: bool = False, announce=None, serve: bool = False) -> tuple[Path, dict, Serving | None]:
+    """Run the fleet; its results folder, metrics, and (with `serve`, and a viewer or a Foxglove
+    server: `--view`, `--foxglove`) the finished fleet's servers, still running until the caller's
+    `Serving.wait()`."""
     if config.connect is None:
         check_port_free(config.listen)
+    if config.foxglove is not None:   # fail now, in one line
+        check_foxglove_available()
+        if config.foxglove:
+            check_port_free(f"tcp/127.0.0.1:{config.foxglove}")
     if config.map is not None:
         raise ConfigError("--fleet does not take --map (each robot starts a map of its own)")
     if not config.mapping:
@@ -164,6 +181,8 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
                                    "fleet_robots": [{"robot": r, "start": s, "delay": d} for r, s, d in plan]})
     supervisor = Supervisor(folder / FLEET / LOGS)
     names = [robot for robot, _, _ in plan]
+    observers = (["viewer"] if config.view else []) + (["foxglove"] if config.foxglove is not None else [])
+    kept: list[str] = []
     started = time.monotonic()
     try:
         if config.connect is None:
@@ -178,6 +197,10 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
         supervisor.start("fleetmap", fleetmap_args)
         with FleetRecorder(RuntimeConfig(connect=[router], robot=topics.FLEET)) as recorder:
             _wait_for(lambda: (topics.FLEET, "fleetmap", "fleetmap") in recorder.live(), supervisor, "fleetmap")
+            for name in observers:   # one viewer, one Foxglove server for the whole fleet
+                supervisor.start(name, observer_args(config, name, router, names[0]))
+            for name in observers:
+                (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
             pending = list(plan)
             while pending or any(supervisor.exited(f"robot-{r}") is None for r in names if f"robot-{r}" in supervisor.children):
                 for robot, start, delay in list(pending):
@@ -204,16 +227,32 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
                 time.sleep(0.2)
             _drain(supervisor, recorder)
             online = {robot: dict(poses) for robot, poses in recorder.poses.items()}
+        if serve:
+            kept = [name for name in observers if supervisor.exited(name) is None]
     finally:
         supervisor.stop(["fleetmap"])
-        supervisor.stop([n for n in supervisor.children if n != "router"])
-        supervisor.stop(["router"])
+        supervisor.stop([n for n in supervisor.children if n not in ("router", *kept)])
+        if not kept:
+            supervisor.stop(["router"])
+    serving = Serving(supervisor, kept) if kept else None
     wall = time.monotonic() - started
-    result = evaluate_fleet(folder, names, online, {r: d for r, _, d in plan})
-    result["wall_time_s"] = wall
-    result["fleetmap_restarts"] = supervisor.children["fleetmap"].restarts
-    write_json(folder / METRICS, {"fleet": result, "robots": {r: _summary(folder / r) for r in names}})
-    return folder, result
+    try:
+        result = evaluate_fleet(folder, names, online, {r: d for r, _, d in plan})
+        result["wall_time_s"] = wall
+        result["fleetmap_restarts"] = supervisor.children["fleetmap"].restarts
+        write_json(folder / METRICS, {"fleet": result, "robots": {r: _summary(folder / r) for r in names}})
+    except BaseException:
+        if serving is not None:   # the results could not be written: nothing is left to serve
+            serving.close()
+        raise
+    return folder, result, serving
+
+
+def _wait_for_address(supervisor: Supervisor, name: str) -> str:
+    """The address a server child printed (`gridslam viewer: URL`); RunError when it exits first."""
+    child = supervisor.children[name]
+    _wait_for(lambda: child.address is not None, supervisor, name)
+    return child.address
 
 
 def _wait_for(predicate, supervisor: Supervisor, name: str) -> None:
@@ -427,9 +466,17 @@ def run_fleet_command(args, config: RunConfig, progress=None) -> int:
         for robot, start, _ in plan:
             if start >= total:
                 raise ConfigError(f"--robot-start {start} (robot {robot}): the source has {total} frames")
-    folder, result = run_fleet(config, plan, args.out, progress=progress, overwrite=args.overwrite,
-                               announce=lambda line: print(line, flush=True))
-    robots = json.loads((folder / METRICS).read_text())["robots"]
-    print(format_table(summary_rows(result, robots)))
-    print(f"results: {folder}")
+    folder, result, serving = run_fleet(config, plan, args.out, progress=progress, overwrite=args.overwrite,
+                                        announce=lambda line: print(line, flush=True), serve=True)
+    try:
+        robots = json.loads((folder / METRICS).read_text())["robots"]
+        print(format_table(summary_rows(result, robots)))
+        print(f"results: {folder}")
+        if serving is not None:   # --view, --foxglove: time to look at the finished fleet
+            addresses = ", ".join(f"{name} {address}" for name, address in serving.addresses.items())
+            print(f"the fleet has finished; serving it until Ctrl-C: {addresses}", flush=True)
+            serving.wait()
+    finally:
+        if serving is not None:
+            serving.close()
     return 0

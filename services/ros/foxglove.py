@@ -13,6 +13,13 @@ So a client is sent, when it subscribes to a channel, what the run published on 
 then every new message: a client that connects late, or after the run has finished, sees the
 whole run.
 
+With `--fleet` (`[foxglove] fleet`; docs/fleet.md) it also publishes every robot the fleet map
+has joined to the fleet frame: `/fleet/<robot>/pose` (geometry_msgs/PoseWithCovarianceStamped
+in frame `map`, the fleet frame, as the ROS 2 node's `--fleet` does) from each
+`gridslam/@v1/fleet/<robot>/pose`, and `/fleet/<robot>/path` (nav_msgs/Path, frame `map`: the
+poses published since it joined, at most `map_rate_hz` a second). A robot's channels are
+advertised when its first joined pose comes, to clients already connected too.
+
 Like the viewer this is an observer: it never pushes back on the pipeline. Its inbox is deep
 and a full one drops the sample (counted as `dropped_busy` in its status); camera frames and
 lattice snapshots are taken newest-only; the SDK keeps a bounded queue per client and drops a
@@ -25,12 +32,14 @@ from __future__ import annotations
 import argparse
 import collections
 import logging
+import math
 import threading
 import time
+from dataclasses import dataclass
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator
 
-from schemas import CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate
+from schemas import CameraFrame, EgoMotion, FleetPose, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate
 from services.common import codec, topics
 from services.common.config import load_config
 from services.common.convert import image_from_msg, pose_to_matrix
@@ -40,9 +49,11 @@ from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
 from services.common.odometry import DeadReckoning, turn_first
-from services.common.settings import add_field_flag
+from services.common.settings import add_field_flag, add_flag, config_fields, setting
+from services.ros import projection
 from services.ros2wire.messages import (
-    ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, TOPICS, MapState, RosMessages, camera_jpeg, typestore,
+    ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, PATH, POSE_WITH_COVARIANCE, TOPICS, MapState,
+    RosMessages, camera_jpeg, typestore, yaw_quaternion,
 )
 from services.ros.ws_relay import SubprotocolRelay
 
@@ -52,6 +63,21 @@ INBOX_SIZE = 4096   # as the viewer's: pose messages are small, newest-only topi
 # Topics whose newest message holds all a client needs (the whole map, the last image): a late
 # client is sent that one; of every other topic, every message kept.
 NEWEST_ONLY = frozenset({"/tf_static", MARKERS_TOPIC, CAMERA_TOPIC, CAMERA_INFO_TOPIC, ACTIVITY_TOPIC})
+FLEET_PATH_POINTS = 4000   # a robot's fleet path is thinned to at most this many poses
+FLEET_ROBOTS_RESERVED = 4  # a client's queue has room for the history of this many robots' fleet poses
+
+
+def fleet_pose_topic(robot: str) -> str:
+    return f"/fleet/{robot}/pose"
+
+
+def fleet_path_topic(robot: str) -> str:
+    return f"/fleet/{robot}/path"
+
+
+def newest_only(topic: str) -> bool:
+    """Whether a late client needs only the topic's newest message (the whole map, the last image, a whole path)."""
+    return topic in NEWEST_ONLY or (topic.startswith("/fleet/") and topic.endswith("/path"))
 
 
 def check_available() -> None:
@@ -64,7 +90,18 @@ def check_available() -> None:
                           "pip install 'gridslam[foxglove]'") from None
 
 
-class FoxgloveConfig(BaseModel):
+@dataclass(frozen=True)
+class FoxgloveFleetParams:
+    """The Foxglove server's fleet setting (declared once: `[foxglove] fleet`, `GRIDSLAM_FOXGLOVE_FLEET`, `--fleet`)."""
+
+    LABEL = "[foxglove]"
+
+    fleet: bool = setting(False, help="Also publish every robot the fleet map has joined (docs/fleet.md) as "
+                                      "/fleet/<robot>/pose and /fleet/<robot>/path in the shared frame `map`, the "
+                                      "fleet frame.")
+
+
+class _FoxgloveFields(BaseModel):
     """Configuration of the foxglove service (table `[foxglove]`, env `GRIDSLAM_FOXGLOVE_*`)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -88,6 +125,53 @@ class FoxgloveConfig(BaseModel):
         return value
 
 
+FoxgloveConfig = create_model("FoxgloveConfig", __base__=_FoxgloveFields, __doc__=_FoxgloveFields.__doc__,
+                              **config_fields(FoxgloveFleetParams))
+
+
+class FleetPaths:
+    """The fleet's topics (module docstring), pure: fleet poses in, `(topic, ROS type, stamp ns, CDR bytes)`
+    out, built by messages.RosMessages. A robot's path holds its poses since it joined; a robot
+    whose join the fleet map splits again publishes nothing until it joins again, and its path
+    then starts afresh (the old poses are in the fleet frame of a join that was undone)."""
+
+    def __init__(self, ros: RosMessages, period_s: float, max_points: int = FLEET_PATH_POINTS):
+        self.ros, self.period_s, self.max_points = ros, period_s, max_points
+        self.paths: dict[str, list[tuple[int, float, float, float]]] = {}   # robot → (stamp ns, x, y, heading)
+        self.joined: dict[str, bool] = {}
+        self.pending: dict[str, int] = {}   # robot → stamp of a path change not sent yet
+        self.sent_at = -math.inf
+
+    def pose(self, robot: str, stamp: int, x: float, y: float, heading: float,
+             joined: bool) -> list[tuple[str, str, int, bytes]]:
+        was_joined = self.joined.get(robot, False)
+        self.joined[robot] = joined
+        if not joined:
+            if was_joined:   # split: the path so far is in a frame it is no longer in
+                self.paths[robot] = []
+                self.pending.pop(robot, None)
+            return []
+        if not was_joined:
+            self.paths[robot] = []
+        self.paths[robot].append((stamp, x, y, heading))
+        self.pending[robot] = stamp
+        return [(fleet_pose_topic(robot), POSE_WITH_COVARIANCE, stamp, self.ros.pose_with_covariance(
+            stamp, projection.MAP_FRAME, (x, y, 0.0), yaw_quaternion(heading)))]
+
+    def due(self, now: float, final: bool = False) -> list[tuple[str, str, int, bytes]]:
+        """The paths that changed, once their period has passed (or `final`)."""
+        if not self.pending or (not final and now - self.sent_at < self.period_s):
+            return []
+        messages = []
+        for robot, stamp in sorted(self.pending.items()):
+            path = self.paths[robot]
+            stride = max(1, math.ceil(len(path) / self.max_points))
+            poses = path[::stride] if (len(path) - 1) % stride == 0 else path[::stride] + path[-1:]
+            messages.append((fleet_path_topic(robot), PATH, stamp, self.ros.path(stamp, projection.MAP_FRAME, poses)))
+        self.pending, self.sent_at = {}, now
+        return messages
+
+
 class RunHistory:
     """What the run published on each topic, for a client that subscribes later: up to `limit`
     messages per topic (oldest dropped first), the newest only of the NEWEST_ONLY topics. Pure:
@@ -100,7 +184,7 @@ class RunHistory:
     def add(self, topic: str, stamp: int, data: bytes) -> None:
         kept = self.topics.get(topic)
         if kept is None:
-            kept = self.topics[topic] = collections.deque(maxlen=1 if topic in NEWEST_ONLY else self.limit)
+            kept = self.topics[topic] = collections.deque(maxlen=1 if newest_only(topic) else self.limit)
         kept.append((stamp, data))
 
     def messages(self, topic: str) -> list[tuple[int, bytes]]:
@@ -111,7 +195,7 @@ class RunHistory:
 
     def capacity(self, topics) -> int:
         """The most messages it can hold of these topics."""
-        return sum(1 if topic in NEWEST_ONLY else self.limit for topic in topics)
+        return sum(1 if newest_only(topic) else self.limit for topic in topics)
 
 
 class ClientServer:
@@ -126,10 +210,9 @@ class ClientServer:
 
         self.owner = owner
         self.context = foxglove.Context()
-        self.channels = {topic: foxglove.Channel(topic, message_encoding="cdr", context=self.context,
-                                                 schema=foxglove.Schema(name=msgtype, encoding="ros2msg",
-                                                                        data=owner.msgdefs[msgtype]))
-                         for topic, msgtype in TOPICS.items()}
+        self.channels = {}
+        for topic, msgtype in {**TOPICS, **owner.extra_topics}.items():   # a copy: the main thread adds to it
+            self.add_channel(topic, msgtype)
         self.replayed: set[str] = set()   # topics the client subscribed to and was sent the history of
         self.closed = False
         self._closing = threading.Lock()
@@ -144,10 +227,19 @@ class ClientServer:
                     listener.replayed.discard(channel.topic)
 
         config = owner.config
+        reserved = FLEET_ROBOTS_RESERVED * (config.history + 1) if config.fleet else 0   # robots that join later
         self.server = foxglove.start_server(
             name=f"gridslam {owner.robot}", host="127.0.0.1", port=0, context=self.context, server_listener=Listener(),
-            message_backlog_size=config.backlog + owner.history.capacity(TOPICS))
+            message_backlog_size=config.backlog + owner.history.capacity({**TOPICS, **owner.extra_topics}) + reserved)
         self.port = self.server.port
+
+    def add_channel(self, topic: str, msgtype: str) -> None:
+        """A channel of the client's server (a robot's fleet topic: advertised to the connected client)."""
+        import foxglove
+
+        self.channels[topic] = foxglove.Channel(topic, message_encoding="cdr", context=self.context,
+                                                schema=foxglove.Schema(name=msgtype, encoding="ros2msg",
+                                                                       data=self.owner.msgdefs[msgtype]))
 
     def on_subscribe(self, topic: str) -> None:
         if topic not in self.channels:
@@ -183,7 +275,10 @@ class FoxgloveService(Service):
         check_available()
 
         self.ros = RosMessages()
-        self.msgdefs = {msgtype: self.ros.msgdef(msgtype).encode() for msgtype in set(TOPICS.values())}
+        self.msgdefs = {msgtype: self.ros.msgdef(msgtype).encode()
+                        for msgtype in {*TOPICS.values(), POSE_WITH_COVARIANCE, PATH}}
+        self.extra_topics: dict[str, str] = {}   # topics beyond TOPICS: the fleet's, as robots join
+        self.fleet = FleetPaths(self.ros, 1.0 / config.map_rate_hz) if config.fleet else None
         self.history = RunHistory(config.history)
         self.lock = threading.Lock()             # guards history and clients (main, relay and SDK threads)
         self.clients: list[ClientServer] = []
@@ -203,6 +298,9 @@ class FoxgloveService(Service):
         client = ClientServer(self)
         with self.lock:
             self.clients.append(client)
+            for topic, msgtype in self.extra_topics.items():   # a fleet topic that came meanwhile
+                if topic not in client.channels:
+                    client.add_channel(topic, msgtype)
         return client
 
     def forget(self, client: ClientServer) -> None:
@@ -236,6 +334,9 @@ class FoxgloveService(Service):
                        "camera/frame": self.on_camera_frame, "grid/activity": self.on_grid_activity})
         # A map already built when this service starts: fetch it once (map/update then keeps it).
         self.session.get(topics.key(self.robot, "map/snapshot"), self._on_snapshot, timeout=5.0)
+        if self.fleet is not None:   # every robot's pose in the fleet frame (the fleet map's key space)
+            self.subscribe(topics.fleet_pose_topic("*"), self.on_fleet_pose, robot=topics.FLEET, drop_stale=False,
+                           sparse=True)
         log.info("foxglove serving %s", self.url)
 
     def teardown(self) -> None:
@@ -244,6 +345,8 @@ class FoxgloveService(Service):
     def on_idle(self) -> None:
         self._take_snapshot()
         self._send_map_if_due()
+        if self.fleet is not None:
+            self._log_fleet(self.fleet.due(time.monotonic()))
 
     def extra_counters(self) -> dict[str, float]:
         return {**super().extra_counters(), "messages_sent": self.sent, "clients": len(self.clients),
@@ -318,6 +421,28 @@ class FoxgloveService(Service):
         fields = message.model_dump(exclude={"header", "schema_version"})
         self._log(stamp, self.ros.closure(stamp, fields))
 
+    def on_fleet_pose(self, message: FleetPose) -> None:
+        position = message.pose.position
+        stamp = self._stamp(message)
+        self._log_fleet(self.fleet.pose(message.header.robot, stamp, position.x, position.y, message.heading,
+                                        message.joined))
+        self._log_fleet(self.fleet.due(time.monotonic()))
+
+    def _log_fleet(self, messages: list[tuple[str, str, int, bytes]]) -> None:
+        """The fleet's messages; a topic new to the run gets its channel on every client first."""
+        for topic, msgtype, _, _ in messages:
+            if topic not in self.extra_topics:
+                with self.lock:
+                    self.extra_topics[topic] = msgtype
+                    for client in self.clients:
+                        client.add_channel(topic, msgtype)
+        with self.lock:
+            for topic, _, stamp, data in messages:
+                self.history.add(topic, stamp, data)
+                for client in self.clients:
+                    client.log(topic, stamp, data)
+                self.sent += 1
+
     def on_camera_frame(self, message: CameraFrame) -> None:
         stamp = self._stamp(message)
         jpeg, scale = camera_jpeg(image_from_msg(message.left), message.left.encoding)
@@ -366,11 +491,13 @@ class FoxgloveService(Service):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     for name in ("host", "port", "allow_remote"):
         add_field_flag(parser, FoxgloveConfig, name)
+    add_flag(parser, FoxgloveFleetParams, "fleet", action="store_true", default=None)
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(FoxgloveConfig, "foxglove", config_file=args.config,
-                         overrides={"host": args.host, "port": args.port, "allow_remote": args.allow_remote})
+                         overrides={"host": args.host, "port": args.port, "allow_remote": args.allow_remote,
+                                    "fleet": args.fleet})
     service = FoxgloveService(runtime, config, args.instance)
     print(f"gridslam foxglove: {service.url}", flush=True)
     return service.run()

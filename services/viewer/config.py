@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator
 
 from services.common.runtime import is_loopback
+from services.common.settings import config_fields, params_of
+from services.viewer.fleet import FleetViewParams
 from services.viewer.state import ViewerParams
 
 
@@ -16,7 +18,9 @@ def split_address(address: str) -> tuple[str, int]:
     return host.removeprefix("[").removesuffix("]"), int(port)
 
 
-class ViewerConfig(BaseModel):
+class _ViewerFields(BaseModel):
+    """Configuration of the viewer service (table `[viewer]`, env `GRIDSLAM_VIEWER_*`)."""
+
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     # allow_remote comes first: the check of `http` reads it.
@@ -47,3 +51,10 @@ class ViewerConfig(BaseModel):
 
     def params(self) -> ViewerParams:
         return ViewerParams(max_points=self.max_points, camera_width=self.camera_width)
+
+    def fleet_params(self) -> FleetViewParams:
+        return params_of(FleetViewParams, self)
+
+
+ViewerConfig = create_model("ViewerConfig", __base__=_ViewerFields, __doc__=_ViewerFields.__doc__,
+                            **config_fields(FleetViewParams))

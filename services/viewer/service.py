@@ -26,8 +26,8 @@ from urllib.parse import urlsplit
 import zenoh
 
 from schemas import (
-    CameraFrame, EgoMotion, GridActivity, GridPose, LoopClosure, MapPose, MapRoute, MapSnapshot, MapUpdate,
-    ServiceStatus, ViewTemplate,
+    CameraFrame, EgoMotion, FleetPose, FleetSnapshot, FleetUpdate, GridActivity, GridPose, LoopClosure, MapPose, MapRoute,
+    MapSnapshot, MapUpdate, ServiceStatus, ViewTemplate,
 )
 from services.common import codec, topics
 from services.common.config import load_config
@@ -36,8 +36,9 @@ from services.common.errors import ConfigError
 from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
-from services.common.settings import add_field_flag
+from services.common.settings import add_field_flag, add_flag
 from services.viewer.config import ViewerConfig
+from services.viewer.fleet import FleetCursor, FleetView, FleetViewParams
 from services.common.images import display_image, encode_camera_jpeg
 from services.viewer.state import Cursor, ViewerState, encode_lattice_png
 
@@ -79,6 +80,10 @@ class ViewerService(Service):
         self._own_entities: list = []            # status and liveliness subscribers (outside the base's seq checks)
         self._snapshot_wanted = True
         self._snapshot_sent = -SNAPSHOT_RETRY_S
+        # --fleet: the fleet map's poses, updates and snapshot (fleet.py), in its key space `fleet`.
+        self.fleet = FleetView(config.max_points) if config.fleet else None
+        self._fleet_snapshot_wanted = self.fleet is not None
+        self._fleet_snapshot_sent = -SNAPSHOT_RETRY_S
 
     @property
     def url(self) -> str:
@@ -119,6 +124,15 @@ class ViewerService(Service):
             self.session.liveliness().declare_subscriber(topics.key(self.robot, "health/**"), self._on_token,
                                                          history=True),
         ]
+        if self.fleet is not None:
+            self.subscribe(topics.fleet_pose_topic("*"), self.on_fleet_pose, robot=topics.FLEET, drop_stale=False,
+                           sparse=True)
+            self.subscribe("update", self.on_fleet_update, robot=topics.FLEET, drop_stale=False, sparse=True)
+            self._own_entities += [   # the fleet map in the table of services, and its restarts
+                self.session.declare_subscriber(topics.key(topics.FLEET, "status/**"), self._on_status_sample),
+                self.session.liveliness().declare_subscriber(topics.key(topics.FLEET, "health/**"), self._on_token,
+                                                             history=True),
+            ]
         self._query_snapshot_if_due()
 
     def teardown(self) -> None:
@@ -186,6 +200,18 @@ class ViewerService(Service):
             self.viewer_state.on_view_template(message.header.seq, message.template_id, message.is_new,
                                                message.distance, message.matched_frame, message.template_count)
 
+    # ----------------------------------------------------------------- the fleet (main thread)
+    def on_fleet_pose(self, message: FleetPose) -> None:
+        position = message.pose.position
+        with self.lock:
+            self.fleet.on_pose(message.header.robot, message.header.seq, position.x, position.y, message.heading,
+                               message.experience_id, message.joined)
+
+    def on_fleet_update(self, message: FleetUpdate) -> None:
+        robots, experiences, links = fleet_items(message)
+        with self.lock:
+            self.fleet.on_update(robots, experiences, links)
+
     # ----------------------------------------------------------------- Zenoh threads
     def _on_status_sample(self, sample: zenoh.Sample) -> None:
         try:
@@ -210,9 +236,15 @@ class ViewerService(Service):
             self.viewer_state.on_liveliness(service, instance, alive)
         if alive and service == "expmap":   # a (re)started map: fetch what it holds
             self._snapshot_wanted = True
+        if alive and service == "fleetmap" and self.fleet is not None:
+            self._fleet_snapshot_wanted = True
 
     def _query_snapshot_if_due(self) -> None:
         now = time.monotonic()
+        if self._fleet_snapshot_wanted and now - self._fleet_snapshot_sent >= SNAPSHOT_RETRY_S and self.session is not None:
+            self._fleet_snapshot_wanted, self._fleet_snapshot_sent = False, now
+            self.session.get(topics.key(topics.FLEET, "snapshot"), self._on_fleet_snapshot_reply,
+                             timeout=SNAPSHOT_TIMEOUT_S)
         if not self._snapshot_wanted or now - self._snapshot_sent < SNAPSHOT_RETRY_S or self.session is None:
             return
         self._snapshot_wanted, self._snapshot_sent = False, now
@@ -231,11 +263,27 @@ class ViewerService(Service):
         with self.lock:
             self.viewer_state.on_map_snapshot(snapshot.header.seq, experiences, links)
 
+    def _on_fleet_snapshot_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is None:
+            return
+        try:
+            snapshot = codec.decode(reply.ok.payload.to_bytes(), FleetSnapshot, str(reply.ok.encoding))
+        except codec.CodecError as error:
+            self.counters.decode_errors += 1
+            log.warning("viewer: dropped fleet snapshot: %s", error)
+            return
+        robots, experiences, links = fleet_items(snapshot)
+        with self.lock:
+            self.fleet.on_snapshot(robots, experiences, links)
+
     # ----------------------------------------------------------------- HTTP threads
-    def view(self, cursor: Cursor | None = None, include_map: bool = True, include_images: bool = True) -> dict:
+    def view(self, cursor: Cursor | None = None, include_map: bool = True, include_images: bool = True,
+             fleet_cursor: FleetCursor | None = None) -> dict:
         with self.lock:
             state = self.viewer_state.view(time.monotonic(), cursor, include_map=include_map,
                                            include_images=include_images)
+            if self.fleet is not None:
+                state["fleet"] = self.fleet.view(fleet_cursor, include_map=include_map)
         state["robot"] = self.robot
         state["connected"] = self.session is not None
         return state
@@ -251,8 +299,8 @@ class ViewerService(Service):
             cached = self._map_json = (experience_map["revision"], json.dumps(experience_map, separators=(",", ":")).encode())
         return body[:-1] + b',"map":' + cached[1] + b"}"
 
-    def revision(self) -> int:
-        return self.viewer_state.revision   # an int read: no lock needed
+    def revision(self) -> int:   # int reads: no lock needed
+        return self.viewer_state.revision + (0 if self.fleet is None else self.fleet.revision + self.fleet.map_revision)
 
     def image(self, which: str) -> bytes | None:
         """The newest camera (JPEG) or lattice (PNG) image, encoded once per revision."""
@@ -356,14 +404,15 @@ class _Handler(BaseHTTPRequestHandler):
             self.end_headers()
             self.wfile.write(b"retry: 1000\n\n")
             config = viewer.config
-            cursor = Cursor()
+            cursor, fleet_cursor = Cursor(), FleetCursor()
             sent_revision, sent_at, map_at, images_at = None, 0.0, 0.0, 0.0
             while not viewer.http_stop.is_set():
                 now = time.monotonic()
                 if viewer.revision() != sent_revision or now - sent_at >= KEEPALIVE_S:
                     sent_revision = viewer.revision()
                     state = viewer.view(cursor, include_map=now - map_at >= 1 / config.map_rate_hz,
-                                        include_images=now - images_at >= 1 / config.image_rate_hz)
+                                        include_images=now - images_at >= 1 / config.image_rate_hz,
+                                        fleet_cursor=fleet_cursor)
                     map_at = now if "map" in state else map_at
                     images_at = now if "camera" in state or "lattice" in state else images_at
                     self.wfile.write(b"data: " + viewer.encode(state) + b"\n\n")
@@ -381,11 +430,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_field_flag(parser, ViewerConfig, "http", metavar="HOST:PORT")
     add_field_flag(parser, ViewerConfig, "allow_remote")
     add_field_flag(parser, ViewerConfig, "rate_hz", flag="--rate", metavar="HZ")
+    add_flag(parser, FleetViewParams, "fleet", action="store_true", default=None)
+
+
+def fleet_items(message: FleetUpdate | FleetSnapshot) -> tuple[list[dict], list, list]:
+    """A FleetUpdate's or FleetSnapshot's robots, experiences and closures as fleet.py takes them."""
+    robots = [robot.model_dump(include={"name", "joined", "joined_at", "part", "experiences"}) for robot in message.robots]
+    experiences = [(e.robot, e.id, e.x, e.y) for e in message.experiences]
+    links = [(link.robot, link.index, link.experience, link.matched_robot, link.matched_experience, link.fate)
+             for link in message.links]
+    return robots, experiences, links
 
 
 def main(runtime: RuntimeConfig, args: argparse.Namespace) -> int:
     config = load_config(ViewerConfig, "viewer", config_file=args.config,
-                         overrides={"http": args.http, "allow_remote": args.allow_remote, "rate_hz": args.rate_hz})
+                         overrides={"http": args.http, "allow_remote": args.allow_remote, "rate_hz": args.rate_hz,
+                                    "fleet": args.fleet})
     service = ViewerService(runtime, config, args.instance)
     print(f"gridslam viewer: {service.url}", flush=True)
     return service.run()

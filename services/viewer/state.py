@@ -62,9 +62,13 @@ class Track:
         """Start afresh when `seq` goes backwards (a new run); True if it did."""
         if self.last_seq is None or seq >= self.last_seq:
             return False
+        self.reset()
+        return True
+
+    def reset(self) -> None:
+        """Start afresh: a browser holding the old epoch is sent the new path whole."""
         self.points, self.stride, self.samples, self.pose, self.last_seq = [], 1, 0, None, None
         self.epoch += 1
-        return True
 
     def add(self, seq: int, x: float, y: float, heading: float) -> bool:
         """Append one sample; True when it started the track afresh."""

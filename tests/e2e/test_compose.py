@@ -194,7 +194,8 @@ def role_of(name: str) -> str:
     ((COMPOSE_FILE,), ("robot-b",), {}),
     ((COMPOSE_FILE, ESTIMATOR_OVERRIDE), ("robot-b",), {"ESTIMATOR": "scanline"}),
     ((COMPOSE_FILE, SECURE_OVERRIDE), ("robot-b",), {}),
-], ids=["base", "robot-b", "estimator", "secure"])
+    ((COMPOSE_FILE, SECURE_OVERRIDE), ("robot-b", "fleet"), {}),
+], ids=["base", "robot-b", "estimator", "secure", "secure-fleet"])
 def test_compose_config_validates(compose, files, profiles, env):
     result = _run(compose_args(compose, files, profiles) + ["config", "-q"], env=compose_env(**env), cwd=REPO)
     assert result.returncode == 0, result.stderr
@@ -277,7 +278,7 @@ def test_secure_override_gives_each_service_its_own_certificate(compose):
     assert tls_paths_in(REPO / "deploy" / "acl" / "router.json5") <= set(router_mounts)
     assert Path(router_mounts["/etc/gridslam/tls/node.key"][0]) == certs / "router.key"
     for name, service in services.items():
-        if name in ("router", "fleetmap"):   # the fleet profile is not in the secure override (docs/fleet.md)
+        if name == "router":
             continue
         environment, mounts = service["environment"], volumes_of(service)
         assert environment["GRIDSLAM_RUNTIME_CONNECT"] == "tls/router:7447", name

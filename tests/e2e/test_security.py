@@ -9,6 +9,11 @@ folder.
 - `gridslam health` with the operator certificate lists the service and its counters (the
   status query and its reply pass); the observer certificate sees neither; without a client
   certificate `gridslam health` cannot connect at all.
+- A fleet (docs/fleet.md): two real `gridslam service loopclosure --fleet` (robots a and b, the
+  loopclosure certificate) fed stereo frames learn each other's places, and a real `gridslam
+  service fleetmap` (the fleetmap certificate) takes robot a's map from an expmap and publishes
+  its fleet pose, which an outside client may read; places, fleet poses and map updates put by
+  certificates without those rights are not delivered, and the observer may not ask for places.
 """
 
 import os
@@ -42,7 +47,8 @@ def test_make_certs_issues_verifiable_role_certificates(certs):
     def openssl(*args: str) -> str:
         return subprocess.run(["openssl", *args], capture_output=True, text=True, check=True).stdout
 
-    for role in ("router", "source", "egomotion", "gridcells", "loopclosure", "expmap", "viewer", "operator", "observer"):
+    for role in ("router", "source", "egomotion", "gridcells", "loopclosure", "expmap", "viewer", "fleetmap", "operator",
+                 "observer"):
         assert openssl("verify", "-CAfile", str(certs / "ca.pem"), str(certs / f"{role}.pem")).strip().endswith("OK")
         assert f"CN = gridslam-{role}" in openssl("x509", "-in", str(certs / f"{role}.pem"), "-noout", "-subject")
         assert stat.S_IMODE(os.stat(certs / f"{role}.key").st_mode) == 0o600
@@ -247,6 +253,135 @@ def test_the_publishers_cache_is_asked_through_access_control_by_the_topics_read
         wait_for(lambda: len(got["gridcells"]) == 5, timeout=10)
         time.sleep(0.5)   # (time for the observer to get what it should not)
         assert got == {"gridcells": [0, 1, 2, 3, 4], "observer": []}
+    finally:
+        for session in sessions.values():
+            session.close()
+
+
+# --------------------------------------------------------------------------- a fleet
+def put(session: zenoh.Session, robot: str, topic: str, message) -> None:
+    session.put(topics.key(robot, topic), codec.encode(message), encoding=zenoh.Encoding(codec.encoding_of(message)))
+
+
+def statuses_of(operator: zenoh.Session, robot: str, service: str) -> dict[str, float]:
+    """The service's counters (its status's extra ones, and `received`), as the operator may ask."""
+    replies = [r.ok for r in operator.get(f"{topics.PREFIX}/{robot}/status/{service}/*", timeout=1) if r.ok]
+    found = [codec.decode(r.payload.to_bytes(), encoding=str(r.encoding)) for r in replies]
+    return {**found[0].extra, "received": found[0].received} if found else {}
+
+
+@pytest.fixture(scope="module")
+def fleet(acl_router, certs, tmp_path_factory):
+    """Robots a and b's real loop closures (--fleet) and a real fleet map, each with its own
+    certificate, on the access-controlled router; yields the port."""
+    port, folder = acl_router, tmp_path_factory.mktemp("fleet")
+    client = ["-e", tls_endpoint(port), "--zenoh-config", str(CLIENT_MTLS)]
+    processes = [start(["service", "loopclosure", "--fleet", "--preset", "synthetic", "--robot", robot, "--instance", "acl",
+                        "--store", str(folder / f"{robot}.log"), *client, *cfg_flags(certs, "loopclosure")])
+                 for robot in ("a", "b")]
+    processes.append(start(["service", "fleetmap", "--instance", "acl", "--frame-robot", "a", "--store",
+                            str(folder / "fleet_map.log"), *client, *cfg_flags(certs, "fleetmap")]))
+    operator = open_session(client_runtime(port, CLIENT_MTLS, certs, "operator"))
+    try:
+        wanted = {topics.health_key("a", "loopclosure", "acl"), topics.health_key("b", "loopclosure", "acl"),
+                  topics.health_key(topics.FLEET, "fleetmap", "acl")}
+
+        def up() -> bool:
+            assert all(p.poll() is None for p in processes), [p.communicate()[1][-2000:] for p in processes if p.poll() is not None]
+            return wanted <= {str(r.ok.key_expr) for r in operator.liveliness().get(f"{topics.PREFIX}/*/health/**", timeout=1)
+                              if r.ok}
+        wait_for(up, timeout=60, period=0.5)
+        yield port
+        assert all(p.poll() is None for p in processes)
+    finally:
+        operator.close()
+        results = [stop(p, timeout=20) for p in processes]
+    assert all(code == 0 for code, _, _ in results), [err[-2000:] for _, _, err in results]
+
+
+def test_fleet_members_exchange_places_and_only_they_may(fleet, certs):
+    from schemas import FleetPlaces, Header, PlaceRecord, Time
+    from services.source.service import frame_message
+    from services.source.synthetic import SyntheticWorld, WorldConfig
+
+    port = fleet
+    sessions = {role: open_session(client_runtime(port, CLIENT_MTLS, certs, role))
+                for role in ("source", "operator", "observer")}
+    try:
+        world = SyntheticWorld(WorldConfig(seed=3, speed=0.25, laps=1))
+        for robot, first in (("a", 0), ("b", 60)):   # each robot its own stretch of the corridor
+            for seq in range(24):
+                frame = world[first + seq]
+                put(sessions["source"], robot, "camera/frame",
+                    frame_message(frame, Header(seq=seq, stamp=Time.from_seconds(frame.stamp), frame_id="camera", robot=robot)))
+        operator = sessions["operator"]
+
+        def exchanged():   # every frame handled, and each robot learnt every place the other sent
+            a, b = statuses_of(operator, "a", "loopclosure"), statuses_of(operator, "b", "loopclosure")
+            sent_a, sent_b = a.get("fleet_places_sent", 0), b.get("fleet_places_sent", 0)
+            return a.get("received", 0) >= 24 and b.get("received", 0) >= 24 and sent_a > 0 and sent_b > 0 and \
+                a.get("fleet_places_learnt") == sent_b and b.get("fleet_places_learnt") == sent_a and (a, b)
+        a, b = wait_for(exchanged, timeout=120, period=1.0)
+
+        # The places queryable answers a reader with the right (the operator), not the observer.
+        replies = [r.ok for r in operator.get(f"{topics.key('a', 'fleet/places')}?from=0", timeout=5) if r.ok]
+        places = codec.decode(replies[0].payload.to_bytes(), FleetPlaces, str(replies[0].encoding))
+        assert len(places.places) == a["fleet_places_sent"]
+        assert not [r for r in sessions["observer"].get(f"{topics.key('a', 'fleet/places')}?from=0", timeout=2) if r.ok]
+
+        # A place put by a certificate without the fleet's rights (a real keyframe, robot c) reaches nobody.
+        forged = FleetPlaces(header=Header(seq=0, stamp=Time.from_seconds(0.0), frame_id="camera", robot="c"),
+                             places=[PlaceRecord(place=0, frame=0, keyframe=places.places[0].keyframe)], place_count=1)
+        for role in ("observer", "source"):
+            put(sessions[role], "c", "fleet/place", forged)
+        time.sleep(4)   # more than a sync period: the loop closures would have taken it by now
+        assert statuses_of(operator, "a", "loopclosure")["fleet_places_learnt"] == b["fleet_places_sent"]
+        assert statuses_of(operator, "b", "loopclosure")["fleet_places_learnt"] == a["fleet_places_sent"]
+    finally:
+        for session in sessions.values():
+            session.close()
+
+
+def test_the_fleet_map_publishes_in_its_own_key_space_only(fleet, certs):
+    from schemas import Experience, FleetPose, FleetSnapshot, Header, Link, MapPose, MapUpdate, Time
+    from services.common.convert import planar_pose
+
+    port = fleet
+    sessions = {role: open_session(client_runtime(port, CLIENT_MTLS, certs, role))
+                for role in ("expmap", "observer", "gridcells", "operator")}
+    try:
+        poses = Collector(sessions["observer"], f"{topics.PREFIX}/{topics.FLEET}/*/pose")   # an outside client may read these
+        time.sleep(0.3)
+        covariance = [0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.001]
+        experiences = [Experience(id=i, x=float(i), y=0.0, heading=0.0, template_id=i, frame=10 * i) for i in range(3)]
+        links = [Link(source=i, target=i + 1, dx=1.0, dy=0.0, dheading=0.0, frame=10 * (i + 1), covariance=covariance)
+                 for i in range(2)]
+
+        def header(seq: int) -> Header:
+            return Header(seq=seq, stamp=Time.from_seconds(seq / 10), frame_id="map", robot="a")
+        # An observer's map of robot a is not the fleet map's input; the expmap's is.
+        put(sessions["observer"], "a", "map/update", MapUpdate(header=header(20), experiences=experiences + [
+            Experience(id=3, x=50.0, y=50.0, heading=0.0, template_id=3, frame=20)], links=links, experience_count=4,
+            link_count=2))
+        time.sleep(0.5)
+        put(sessions["expmap"], "a", "map/update", MapUpdate(header=header(20), experiences=experiences, links=links,
+                                                             experience_count=3, link_count=2))
+
+        def posed():
+            put(sessions["expmap"], "a", "map/pose", MapPose(header=header(21), pose=planar_pose(2.1, 0.0, 0.0), heading=0.0,
+                                                             experience_id=2))
+            # a pipeline service without the fleet map's rights forges a fleet pose
+            put(sessions["gridcells"], topics.FLEET, topics.fleet_pose_topic("a"), FleetPose(
+                header=header(999), pose=planar_pose(9.0, 9.0, 0.0), heading=0.0, experience_id=0, joined=True))
+            return poses.seqs()
+        assert set(wait_for(posed, timeout=30, period=0.5)) == {21}
+        message = poses.messages[0]
+        assert message.joined and abs(message.pose.position.x - 2.1) < 1e-6
+
+        replies = [r.ok for r in sessions["observer"].get(topics.key(topics.FLEET, "snapshot"), timeout=5) if r.ok]
+        snapshot = codec.decode(replies[0].payload.to_bytes(), FleetSnapshot, str(replies[0].encoding))
+        assert [(r.name, r.joined, r.experiences) for r in snapshot.robots] == [("a", True, 3)]
+        assert statuses_of(sessions["operator"], topics.FLEET, "fleetmap")   # its status query passes
     finally:
         for session in sessions.values():
             session.close()

@@ -37,3 +37,48 @@ def test_egomotion_poses_compose_the_increments_and_restart_with_a_new_run():
         assert [p[1] for p in got] == pytest.approx(list(x), abs=1e-9)
         assert [p[2] for p in got] == pytest.approx(list(y), abs=1e-9)
         assert [math.remainder(p[3] - h, math.tau) for p, h in zip(got, heading)] == pytest.approx([0.0] * len(got), abs=1e-9)
+
+
+def test_fleet_paths_publish_joined_robots_only_in_the_map_frame_and_restart_a_split_path():
+    from services.ros.foxglove import FleetPaths
+    from services.ros2wire.messages import RosMessages
+
+    ros = RosMessages()
+    fleet = FleetPaths(ros, period_s=10.0, max_points=3)
+    assert fleet.pose("b", 1, 5.0, 5.0, 0.0, joined=False) == []   # in its own frame: nothing
+    out = fleet.pose("b", 2, 1.0, 2.0, 0.5, joined=True)
+    assert [(topic, msgtype) for topic, msgtype, _, _ in out] == [("/fleet/b/pose", "geometry_msgs/msg/PoseWithCovarianceStamped")]
+    pose = ros.store.deserialize_cdr(out[0][3], out[0][1])
+    assert pose.header.frame_id == "map" and (pose.pose.pose.position.x, pose.pose.pose.position.y) == (1.0, 2.0)
+    assert math.isclose(2 * math.atan2(pose.pose.pose.orientation.z, pose.pose.pose.orientation.w), 0.5)
+    for stamp in range(3, 8):
+        fleet.pose("b", stamp, float(stamp), 0.0, 0.0, joined=True)
+    (topic, msgtype, stamp, data), = fleet.due(now=100.0)
+    path = ros.store.deserialize_cdr(data, msgtype)
+    # 6 poses thinned to every second one, the newest kept: stamps 2, 4, 6 and 7.
+    assert topic == "/fleet/b/path" and stamp == 7 and path.header.frame_id == "map"
+    assert [p.header.stamp.nanosec for p in path.poses] == [2, 4, 6, 7]
+    assert fleet.due(now=101.0) == []   # unchanged, and within the period
+    fleet.pose("b", 8, 9.0, 9.0, 0.0, joined=False)   # the join is split
+    fleet.pose("b", 9, 3.0, 3.0, 0.0, joined=True)
+    (_, msgtype, _, data), = fleet.due(now=200.0)
+    assert [p.pose.position.x for p in ros.store.deserialize_cdr(data, msgtype).poses] == [3.0]
+
+
+def test_a_robots_fleet_channels_are_advertised_when_it_first_joins():
+    from schemas import FleetPose
+    from services.common.convert import planar_pose
+
+    service = FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=0, fleet=True), "test")
+    try:
+        client = service.open_client()
+        assert "/fleet/a/pose" not in client.channels
+        for seq, joined in enumerate([False, True, True]):
+            service.on_fleet_pose(FleetPose(header=Header(seq=seq, stamp=Time.from_seconds(seq), robot="a", frame_id="map"),
+                                            pose=planar_pose(seq, 0.0, 0.0), heading=0.0, experience_id=0, joined=joined))
+        assert {"/fleet/a/pose", "/fleet/a/path"} <= set(client.channels)
+        assert len(service.history.messages("/fleet/a/pose")) == 2 and len(service.history.messages("/fleet/a/path")) == 1
+        late = service.open_client()   # a client that connects later has the channels from the start
+        assert {"/fleet/a/pose", "/fleet/a/path"} <= set(late.channels)
+    finally:
+        service.teardown()

@@ -36,8 +36,8 @@ KEYS = {
         "odometry_translation_sigma odometry_heading_sigma odometry_turn_sigma odometry_translation_floor "
         "odometry_heading_floor snap_translation_sigma snap_heading_sigma mono_scale_sigma robust_kernel kernel_width "
         "closure_gate closure_iterations join_closures join_gate store checkpoint_updates checkpoint_frames out map localize"),
-    "viewer": "allow_remote http rate_hz map_rate_hz image_rate_hz max_points camera_width max_clients",
-    "foxglove": "allow_remote host port map_rate_hz backlog history",
+    "viewer": "allow_remote http rate_hz map_rate_hz image_rate_hz max_points camera_width max_clients fleet",
+    "foxglove": "allow_remote host port map_rate_hz backlog history fleet",
     "ros2": "path_rate_hz map_rate_hz ros_domain_id ros_namespace ros_distro ros2_keys",
     "run": (
         "source egomotion integrator decoder step_source modules heading preset calibration fov camera_height "

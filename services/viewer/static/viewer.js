@@ -16,6 +16,12 @@ let currentExperience = null;
 let updates = 0;
 let drawPending = false;
 let finished = false;          // the run has finished (the source said so)
+// --fleet (services/viewer/fleet.py): robot → {joined, joined_at, part, track: {epoch, points, pose}}
+const fleetRobots = new Map();
+let fleetExperiences = {};     // robot → Map(id → [x, y]) in its part's frame
+let fleetLinks = [];           // [robot, experience, matched robot, matched experience, fate]
+// One colour per robot, in the order of their names (a, b, c, ...).
+const FLEET_COLOURS = ["#1a9a4b", "#1f6fd1", "#d1541f", "#8e3fb5", "#b7791f", "#0e9aa7", "#c2185b", "#5d6d7e"];
 
 const $ = (id) => document.getElementById(id);
 const svg = $("map");
@@ -52,10 +58,69 @@ function applyState(state) {
   showCamera(state.camera, state.template);
   showLoopClosures(state.loop_closures);
   showServices(state.services);
+  if (state.fleet && !applyFleet(state.fleet)) return;
   if (!drawPending) {
     drawPending = true;
     requestAnimationFrame(draw);
   }
+}
+
+// Tails as the main tracks: {epoch, from, points} appends to what is held when the epoch matches.
+function applyFleet(fleet) {
+  $("fleet-panel").hidden = false;
+  for (const [name, incoming] of Object.entries(fleet.robots)) {
+    let robot = fleetRobots.get(name);
+    if (!robot) {
+      robot = { track: { epoch: null, points: [], pose: null } };
+      fleetRobots.set(name, robot);
+    }
+    const tail = incoming.track;
+    if (tail.from === 0 || tail.epoch !== robot.track.epoch) {
+      robot.track.points = tail.points;
+    } else if (tail.from === robot.track.points.length) {
+      for (const point of tail.points) robot.track.points.push(point);
+    } else {
+      source.close();
+      setTimeout(connect, 200);
+      return false;
+    }
+    robot.track.epoch = tail.epoch;
+    robot.track.pose = tail.pose;
+    robot.joined = incoming.joined;
+    robot.joined_at = incoming.joined_at;
+    robot.part = incoming.part;
+    robot.experiences = incoming.experiences;
+  }
+  if (fleet.map) {
+    fleetExperiences = {};
+    for (const [name, rows] of Object.entries(fleet.map.experiences)) {
+      fleetExperiences[name] = new Map(rows.map(([id, x, y]) => [id, [x, y]]));
+    }
+    fleetLinks = fleet.map.links;
+  }
+  showFleetLegend(fleet.closures);
+  return true;
+}
+
+function fleetColour(name) {
+  const names = [...fleetRobots.keys()].sort();
+  return FLEET_COLOURS[names.indexOf(name) % FLEET_COLOURS.length];
+}
+
+function showFleetLegend(closures) {
+  const items = [...fleetRobots.keys()].sort().map((name) => {
+    const robot = fleetRobots.get(name);
+    // The fleet frame is the map frame of the robot whose part holds itself (robot a).
+    const state = !robot.joined ? "not joined: in its own frame, not drawn"
+      : robot.part === name || robot.joined_at === null || robot.joined_at === undefined ? "fleet frame"
+      : `joined at frame ${robot.joined_at}`;
+    return `<li class="${robot.joined ? "joined" : "unjoined"}" data-robot="${name}"><span class="swatch" ` +
+      `style="background:${fleetColour(name)}"></span>robot ${name} · ${state} · ${robot.experiences} experiences</li>`;
+  });
+  items.push(`<li>inter-robot closures: ${closures.accepted} accepted · ${closures.rejected} refused · ` +
+    `${closures.pending} pending</li>`);
+  const html = items.join("");
+  if ($("fleet-legend").innerHTML !== html) $("fleet-legend").innerHTML = html;
 }
 
 // ------------------------------------------------------------------ counters and side panels
@@ -200,6 +265,7 @@ function niceStep(metres) {
 
 function draw() {
   drawPending = false;
+  drawFleet();
   const width = svg.clientWidth;
   const height = svg.clientHeight;
   let xmin = Infinity, xmax = -Infinity, ymin = Infinity, ymax = -Infinity;
@@ -266,7 +332,70 @@ function draw() {
   $("poses").innerHTML = poses.join("");
 }
 
-function drawGrid(width, height, scale, midX, midY) {
+// The fleet frame: only the robots joined to it (a robot not joined is posed in a frame of its own).
+function drawFleet() {
+  if ($("fleet-panel").hidden) return;
+  const plot = $("fleet-map");
+  const width = plot.clientWidth, height = plot.clientHeight;
+  let xmin = Infinity, xmax = -Infinity, ymin = Infinity, ymax = -Infinity;
+  const extend = (x, y) => {
+    if (x < xmin) xmin = x; if (x > xmax) xmax = x;
+    if (y < ymin) ymin = y; if (y > ymax) ymax = y;
+  };
+  const joined = [...fleetRobots.keys()].sort().filter((name) => fleetRobots.get(name).joined);
+  for (const name of joined) {
+    const track = fleetRobots.get(name).track;
+    for (const [x, y] of track.points) extend(x, y);
+    if (track.pose) extend(track.pose[0], track.pose[1]);
+    for (const [x, y] of (fleetExperiences[name] || new Map()).values()) extend(x, y);
+  }
+  const empty = xmin === Infinity;
+  $("fleet-waiting").style.display = empty ? "" : "none";
+  if (empty) return;
+  const spanX = Math.max(xmax - xmin, MIN_EXTENT_M), spanY = Math.max(ymax - ymin, MIN_EXTENT_M);
+  const scale = Math.min((width - 2 * MARGIN_PX) / spanX, (height - 2 * MARGIN_PX) / spanY);
+  const midX = (xmin + xmax) / 2, midY = (ymin + ymax) / 2;
+  const sx = (x) => (width / 2 + (x - midX) * scale).toFixed(1);
+  const sy = (y) => (height / 2 - (y - midY) * scale).toFixed(1);
+  drawGrid(width, height, scale, midX, midY, "fleet-grid-lines", "fleet-scale-bar");
+  const tracks = [], dots = [], poses = [];
+  for (const name of joined) {
+    const colour = fleetColour(name);
+    const track = fleetRobots.get(name).track;
+    const points = track.points.slice();
+    if (track.pose) points.push([track.pose[0], track.pose[1]]);
+    if (points.length) {
+      tracks.push(`<path class="track" data-robot="${name}" data-count="${points.length}" style="stroke:${colour}" ` +
+        `d="M${points.map(([x, y]) => `${sx(x)},${sy(y)}`).join("L")}"></path>`);
+    }
+    const experiences = [...(fleetExperiences[name] || new Map()).values()];
+    dots.push(`<path class="experience-dots" data-robot="${name}" data-count="${experiences.length}" ` +
+      `style="stroke:${colour};stroke-width:4;stroke-opacity:.45" d="${experiences.map(([x, y]) => `M${sx(x)},${sy(y)}h0`).join("")}"></path>`);
+    if (track.pose) {
+      const [x, y, heading] = track.pose;
+      const cx = Number(sx(x)), cy = Number(sy(y));
+      const corner = (angle, radius) =>
+        `${(cx + radius * Math.cos(angle)).toFixed(1)},${(cy - radius * Math.sin(angle)).toFixed(1)}`;
+      poses.push(`<polygon class="pose" data-robot="${name}" style="fill:${colour}" points="${corner(heading, 12)} ` +
+        `${corner(heading + 2.5, 8)} ${corner(heading - 2.5, 8)}"></polygon>` +
+        `<text x="${cx + 10}" y="${cy - 10}" style="fill:${colour};font-size:12px;font-weight:600">${name}</text>`);
+    }
+  }
+  const closures = [];
+  for (const [robot, experience, matchedRobot, matchedExperience, fate] of fleetLinks) {
+    if (fate !== "accepted" || !joined.includes(robot) || !joined.includes(matchedRobot)) continue;
+    const a = (fleetExperiences[robot] || new Map()).get(experience);
+    const b = (fleetExperiences[matchedRobot] || new Map()).get(matchedExperience);
+    if (a && b) closures.push(`M${sx(a[0])},${sy(a[1])}L${sx(b[0])},${sy(b[1])}`);
+  }
+  $("fleet-tracks").innerHTML = tracks.join("");
+  $("fleet-experiences").innerHTML = dots.join("");
+  $("fleet-closures").setAttribute("d", closures.join(""));
+  $("fleet-closures").dataset.count = String(closures.length);
+  $("fleet-poses").innerHTML = poses.join("");
+}
+
+function drawGrid(width, height, scale, midX, midY, gridId = "grid-lines", barId = "scale-bar") {
   const step = niceStep(90 / scale);   // metres between grid lines, about 90 px apart
   const lines = [];
   const x0 = midX - width / 2 / scale, y0 = midY - height / 2 / scale;
@@ -278,10 +407,10 @@ function drawGrid(width, height, scale, midX, midY) {
     const py = (height / 2 - (y - midY) * scale).toFixed(1);
     lines.push(`<line x1="0" y1="${py}" x2="${width}" y2="${py}"></line>`);
   }
-  $("grid-lines").innerHTML = lines.join("");
+  $(gridId).innerHTML = lines.join("");
   const bar = step * scale;
   const label = step >= 1 ? `${step} m` : `${Math.round(step * 100)} cm`;
-  $("scale-bar").innerHTML =
+  $(barId).innerHTML =
     `<line x1="14" y1="${height - 14}" x2="${(14 + bar).toFixed(1)}" y2="${height - 14}"></line>` +
     `<text x="14" y="${height - 20}">${label}</text>`;
 }
