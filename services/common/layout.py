@@ -9,7 +9,10 @@ k·SESSION_FRAMES + f (session 0 is the first run, numbered as its source number
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
+
+from services.common.settings import add_flag, setting
 
 CONFIG = "config.json"
 METRICS = "metrics.json"
@@ -41,10 +44,18 @@ def map_files(folder: Path) -> dict[str, Path]:
     return {"places": folder / TEMPLATE_LOG, "keyframes": folder / KEYFRAMES, "map": folder / MAP_LOG}
 
 
+@dataclass(frozen=True)
+class MapReuseParams:
+    """A saved map used again, declared once: keys of `[run]`, `[loopclosure]` and `[expmap]`
+    (GRIDSLAM_<SECTION>_MAP, _LOCALIZE) and the flags --map DIR and --localize."""
+
+    map: Path | None = setting(None, help="start from the map of an earlier run's results folder (read only): this run "
+                                          "is its next session, and its own results (the services' journals) the "
+                                          "whole map")
+    localize: bool = setting(False, help="with map: localise on the saved map only, storing nothing new")
+
+
 def add_map_reuse_arguments(parser) -> None:
     """--map DIR and --localize, shared by run, demo and the loopclosure and expmap services."""
-    parser.add_argument("--map", type=Path, metavar="DIR",
-                        help="start from the map of an earlier run's results folder DIR (read only): this run is its next "
-                             "session, its results the whole map")
-    parser.add_argument("--localize", action="store_true", default=None,
-                        help="with --map: localise on the map only, store nothing new")
+    add_flag(parser, MapReuseParams, "map", metavar="DIR")
+    add_flag(parser, MapReuseParams, "localize")

@@ -15,6 +15,7 @@ import argparse
 import dataclasses
 import types
 import typing
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -89,6 +90,26 @@ def config_fields(params_type: type, prefix: str = "", *, optional: bool = False
         else:
             default = ... if f.default is dataclasses.MISSING else f.default
         fields[prefix + f.name] = (annotation, Field(default, description=description, **bounds))
+    return fields
+
+
+def passed_on(model, *names: str, rename: Mapping[str, str] | None = None) -> dict[str, tuple[Any, Any]]:
+    """pydantic.create_model field definitions for settings that a model (such as the whole run's)
+    passes on to the service whose config ``model`` declares them: each field's type, bounds and
+    description as declared there, but optional and None by default, "the service's own setting"
+    (as config_fields(optional=True) for a core's dataclass). ``rename``: {name: key} where the
+    passing model's key differs."""
+    from pydantic import Field
+
+    fields = {}
+    for name in names:
+        field = model.model_fields[name]
+        inner = _not_none(field.annotation)
+        annotation = (typing.Annotated[(inner, *field.metadata)] if field.metadata else inner) | None
+        default = field.get_default(call_default_factory=True)
+        said = "" if default in (None, False, [], {}) else f" (default: the service's, {_shown(default)})"
+        description = (field.description or "").rstrip(".") + said
+        fields[(rename or {}).get(name, name)] = (annotation, Field(None, description=description))
     return fields
 
 

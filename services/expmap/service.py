@@ -31,7 +31,7 @@ from services.common.config import load_config
 from services.common.convert import planar_pose
 from services.common.errors import ConfigError, DataError, PersistenceError
 from services.common.journal import SESSION, continue_session
-from services.common.layout import add_map_reuse_arguments, map_files, session_base
+from services.common.layout import MapReuseParams, add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.common.settings import add_flag, config_fields, params_of
@@ -72,17 +72,13 @@ class _ExpMapFields(BaseModel):
                                "frames after the last); 0: none.")
     checkpoint_frames: int = Field(50, ge=1, description="Fewest frames between checkpoints.")
     out: Path | None = Field(None, description="Folder for loop_closures.csv (none: not written).")
-    map: Path | None = Field(
-        None, description="A results folder whose map to start from (read only): this run is its next session, and its "
-                          "journal (`store`) the whole map.")
-    localize: bool = Field(False, description="With `map`: localise on it only; no experience is stored.")
 
     def params(self) -> MapParams:
         return params_of(MapParams, self)
 
 
 ExpMapConfig = create_model("ExpMapConfig", __base__=_ExpMapFields, __doc__=_ExpMapFields.__doc__,
-                            **config_fields(MapParams))
+                            **config_fields(MapReuseParams), **config_fields(MapParams))
 
 
 CLOSURE_COLUMNS = ("frame", "matched_frame", "matched_template", "votes", "measurement", "forward", "left", "yaw",

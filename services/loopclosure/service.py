@@ -19,7 +19,7 @@ from services.common.config import load_config
 from services.common.convert import image_from_msg
 from services.common.errors import ConfigError
 from services.common.journal import SESSION, Journal, continue_session
-from services.common.layout import add_map_reuse_arguments, map_files, session_base
+from services.common.layout import MapReuseParams, add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
 from services.common.service import REPLAY_FRAMES, Service
 from services.common.settings import add_field_flag, config_fields, params_of
@@ -60,10 +60,6 @@ class _LoopClosureFields(BaseModel):
         0.5, gt=0, description="scanline measurement: how far from the matched place the robot may be, m (std dev).")
     scanline_heading_sigma: float = Field(0.05, gt=0, description="scanline measurement: std dev of its relative angle, rad.")
     keyframe_store_mb: float = Field(512.0, gt=0, description="Largest size of the keyframe file beside the journal, MiB.")
-    map: Path | None = Field(
-        None, description="A results folder whose map to start from (its places and keyframes, read only): this run is "
-                          "its next session, and its journal (`store`, required) the whole map.")
-    localize: bool = Field(False, description="With `map`: localise on it only; no place is stored.")
     fleet: bool = Field(False, description="Take part in a fleet (docs/fleet.md): send this robot's new places to the other "
                                            "robots, learn theirs, and confirm inter-robot closures (keys fleet_*).")
     store: Path | None = Field(
@@ -131,6 +127,7 @@ class _LoopClosureFields(BaseModel):
 
 
 LoopClosureConfig = create_model("LoopClosureConfig", __base__=_LoopClosureFields, __doc__=_LoopClosureFields.__doc__,
+                                 **config_fields(MapReuseParams),
                                  **config_fields(TemplateParams), **config_fields(ConsistencyParams),
                                  **config_fields(BowParams, "bow_"), **config_fields(SequenceParams, "sequence_"),
                                  **config_fields(GeometryParams, GEOMETRY_PREFIX),

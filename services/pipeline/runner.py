@@ -29,18 +29,19 @@ from services.common import health, topics
 from services.common.config import describe_preset, is_preset_file, load_config, preset_applies
 from services.common.errors import ConfigError, GridslamError
 from services.common.journal import SESSION, read_records
-from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, map_files,
-                                     session_base)
+from services.common.layout import (CONFIG, GRID_CHECKPOINT, LOGS, MAP_LOG, RUN_STATE_PATTERNS, TEMPLATE_LOG, MapReuseParams,
+                                     map_files, session_base)
 from services.common.run_settings import RunParams
 from services.common.runtime import RuntimeConfig
-from services.common.settings import config_fields
-from services.common.stages import CLOSURES, INTEGRATORS, MAP_OPTIMIZERS, GridStageParams
+from services.common.settings import config_fields, passed_on
+from services.common.stages import INTEGRATORS, GridStageParams
 from services.egomotion import resolve_estimator, resolve_sharding
 from services.evaluation.results import results_dir, write_config
 from services.evaluation.trajectory import read_tum
 from services.expmap.export import read_log
+from services.expmap.graph import MapParams
 from services.loopclosure.keyframes import check_file as check_keyframes
-from services.loopclosure.places import PLACE_RECOGNITIONS
+from services.loopclosure.service import LoopClosureConfig
 from services.pipeline.assumptions import assess
 from services.pipeline.recorder import Recorder
 from services.pipeline.report import evaluate, write_report
@@ -48,7 +49,7 @@ from services.ros.foxglove import check_available as check_foxglove_available
 from services.ros.mcap_export import write_after_run
 from services.ros2wire.rmw_zenoh import GraphParams
 from services.source.service import SourceConfig
-from services.source.spec import bag_settings, open_source
+from services.source.spec import BagParams, bag_settings, open_source
 
 log = logging.getLogger(__name__)
 
@@ -79,32 +80,11 @@ class _RunFields(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     integrator: Literal[INTEGRATORS] = Field("grid", description="Path integrator.")
-    fov: float | None = Field(None, gt=0, lt=180, description="Horizontal field of view (degrees) of the camera assumed for "
-                                                              "an image folder, video or camera without a calibration.")
-    closure: Literal[CLOSURES] | None = Field(
-        None, description="What a loop closure asserts: the measured relative pose (metric) or the paper's snap (ratslam); "
-                          "default: the services' (metric).")
-    map_optimizer: Literal[MAP_OPTIMIZERS] | None = Field(
-        None, description="What places the experiences: a pose graph (gtsam) or RatSLAM's relaxation; default: the expmap's (gtsam).")
-    map: Path | None = Field(
-        None, description="Start from the map an earlier run left in this results folder (read only); this run is its next "
-                          "session, and its own results folder holds the whole map.")
-    localize: bool = Field(False, description="With map: localise on the saved map only, adding nothing to it.")
-    fleet: bool = Field(False, description="This robot is one of a fleet: its loop closure shares places with the other "
-                                           "robots and confirms inter-robot closures (docs/fleet.md).")
     origin: int | None = Field(None, ge=0, description="The frame whose pose is the ground truth's origin (default: the "
                                                        "run's first; a fleet's robots: the first robot's first frame).")
-    place_recognition: Literal[PLACE_RECOGNITIONS] | None = Field(
-        None, description="How loop closure recognises places: scanline, bow or sequence; default: the loopclosure's "
-                          "(its preset's, or bow).")
     world: dict[str, int | float | bool | str] = Field(
         default_factory=dict, description="Synthetic world settings for the source (--laps, --world KEY=VALUE), over the "
                                           "preset's and the config file's [source] keys.")
-    image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
-    right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
-    camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
-    odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
-    stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
 
 
 # The run's own settings (RunParams: --source, --stride, --egomotion-instances, ...) and the ones
@@ -113,9 +93,14 @@ class _RunFields(BaseModel):
 # settings of the ros2 service and of a ros2: source (GraphParams: --ros-domain-id,
 # --ros-namespace, --ros-distro, --ros2-keys).
 _GRID_STAGE = config_fields(GridStageParams, optional=True)
+_MAP_MODEL = config_fields(MapParams, optional=True)
 RunConfig = create_model("RunConfig", __base__=_RunFields, __doc__=_RunFields.__doc__, **config_fields(RunParams),
                          decoder=_GRID_STAGE["decoder"], step_source=_GRID_STAGE["step"], modules=_GRID_STAGE["modules"],
-                         heading=_GRID_STAGE["heading"], **config_fields(GraphParams, optional=True))
+                         heading=_GRID_STAGE["heading"], closure=_MAP_MODEL["closure"],
+                         map_optimizer=_MAP_MODEL["optimizer"], **config_fields(MapReuseParams),
+                         **passed_on(SourceConfig, "fov"), **config_fields(BagParams),
+                         **passed_on(LoopClosureConfig, "place_recognition", "fleet"),
+                         **config_fields(GraphParams, optional=True))
 
 
 @dataclass

@@ -42,13 +42,13 @@ from services.common.convert import image_to_msg, matrix_to_pose
 from services.common.health import live_services, statuses
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
-from services.common.settings import add_field_flag, add_renamed_flag
+from services.common.settings import add_field_flag, add_renamed_flag, config_fields
 from services.common.topics import TOPICS
 from services.source.calibration import DEFAULT_FOV_DEG
 from services.common.frames import Frame, FrameSource
 from services.source.laps import Laps
 from services.source.replay import Pacer, ReplayController, ReplayParams, Resend
-from services.source.spec import (BAG_FLAG_HELP, add_bag_arguments, add_world_arguments, bag_settings, open_source,
+from services.source.spec import (BAG_KEYS, BagParams, add_bag_arguments, add_world_arguments, bag_settings, open_source,
                                   parse_world_flags, world_keys)
 from services.source.synthetic import WorldConfig
 from services.source.window import AdaptiveWindow, WindowParams
@@ -114,11 +114,6 @@ class _SourceSettings(BaseModel):
         False, description="Before the first frame, ask the running services for the last frame they have all handled "
                            "and start there (sent again first), in its lap when looping: a source restarted in a running "
                            "pipeline goes on where it is. Datasets, video files and the synthetic world.")
-    image_topic: str | None = Field(None, description="ROS bag: image topic (default: the bag's only image topic).")
-    right_image_topic: str | None = Field(None, description="ROS bag: right image topic of a stereo pair.")
-    camera_info_topic: str | None = Field(None, description="ROS bag: CameraInfo topic (default: the image topic's sibling).")
-    odom_topic: str | None = Field(None, description="ROS bag: nav_msgs/Odometry topic (odometry and ground truth).")
-    stereo_tolerance: float | None = Field(None, gt=0, description="ROS bag: largest stamp difference in a stereo pair, s.")
 
     def world(self) -> dict[str, Any]:
         """The synthetic world settings given here (they override the preset's)."""
@@ -132,7 +127,8 @@ def _world_fields() -> dict[str, Any]:
             for key, kind in world_keys().items()}
 
 
-SourceConfig = create_model("SourceConfig", __base__=_SourceSettings, __doc__=_SourceSettings.__doc__, **_world_fields())
+SourceConfig = create_model("SourceConfig", __base__=_SourceSettings, __doc__=_SourceSettings.__doc__, **_world_fields(),
+                            **config_fields(BagParams))
 
 
 def frame_message(frame: Frame, header) -> CameraFrame:
@@ -420,7 +416,7 @@ def config_from_args(args: argparse.Namespace) -> SourceConfig:
     """The service's configuration: the config file's [source] < GRIDSLAM_SOURCE_* < flags
     (world settings from --laps and --world KEY=VALUE, a ROS bag's topics from --image-topic ...)."""
     fields = ("source", "preset", "calibration", "fov", "mono", "start", "origin", "stop", "step", "rate", "window", "adaptive_window",
-              "live_window", "ack_topic", "resend_after", "resend_acknowledged", "loop", "wait_for", "resume", *BAG_FLAG_HELP)
+              "live_window", "ack_topic", "resend_after", "resend_acknowledged", "loop", "wait_for", "resume", *BAG_KEYS)
     return load_config(SourceConfig, "source", config_file=args.config,
                        overrides={**{name: getattr(args, name) for name in fields}, **parse_world_flags(args.world, args.laps)})
 

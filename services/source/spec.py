@@ -26,36 +26,46 @@ from pathlib import Path
 from typing import Any
 
 from services.common.errors import ConfigError
+from services.common.settings import add_flag, setting
 from services.source.calibration import CALIBRATION_KEYS, DEFAULT_FOV_DEG, assumed_camera, camera_from_mapping, read_calibration
 from services.common.frames import Camera, FrameSource, SourceError
 
 PRESET_DIR = Path(__file__).resolve().parent / "presets"
 KINDS = ("kitti", "stereo", "images", "video", "camera", "synthetic", "rosbag", "ros2")
 MONOCULAR_KINDS = ("images", "video", "camera")   # without a calibration, a pinhole camera is assumed (``fov``)
-# The settings of a ROS bag (rosbag.RosbagSource): preset keys, config keys and flags of the same
-# names, shared by `gridslam run`, `odometry` and the source service.
-BAG_FLAG_HELP = {
-    "image_topic": "ROS bag: image topic, sensor_msgs/Image or CompressedImage (default: the bag's only one)",
-    "right_image_topic": "ROS bag or ros2: right image topic of a stereo pair, matched by stamp",
-    "camera_info_topic": "ROS bag or ros2: sensor_msgs/CameraInfo topic (a bag's default: the image topic's camera_info)",
-    "odom_topic": "ROS bag or ros2: nav_msgs/Odometry topic (passthrough estimator; ground truth where the run has none)",
-    "stereo_tolerance": "ROS bag or ros2: seconds between the stamps of a stereo pair, at most (default 0.005)",
-}
+@dataclasses.dataclass(frozen=True)
+class BagParams:
+    """The settings of a ROS bag (rosbag.RosbagSource) and of a live ros2: source: preset keys,
+    `[source]` keys and flags of the same names, shared by `gridslam run`, `odometry` and the
+    source service, declared once here."""
+
+    image_topic: str | None = setting(None, help="ROS bag: image topic, sensor_msgs/Image or CompressedImage "
+                                                 "(default: the bag's only one)")
+    right_image_topic: str | None = setting(None, help="ROS bag or ros2: right image topic of a stereo pair, matched "
+                                                       "by stamp")
+    camera_info_topic: str | None = setting(None, help="ROS bag or ros2: sensor_msgs/CameraInfo topic (a bag's "
+                                                       "default: the image topic's camera_info)")
+    odom_topic: str | None = setting(None, help="ROS bag or ros2: nav_msgs/Odometry topic (passthrough estimator; "
+                                                "ground truth where the run has none)")
+    stereo_tolerance: float | None = setting(None, gt=0, help="ROS bag or ros2: seconds between the stamps of a "
+                                                              "stereo pair, at most (default 0.005)")
+
+
+BAG_KEYS = tuple(f.name for f in dataclasses.fields(BagParams))
 # Source settings a preset may hold besides the calibration, with their types.
 SETTINGS: dict[str, type] = {"fps": float, "grey": bool, "fov": float,
-                             **{key: float if key == "stereo_tolerance" else str for key in BAG_FLAG_HELP}}
+                             **{key: float if key == "stereo_tolerance" else str for key in BAG_KEYS}}
 
 
 def add_bag_arguments(parser) -> None:
     """The ROS bag flags (--image-topic, ...) on an argparse parser; the defaults are None."""
-    for key, help_text in BAG_FLAG_HELP.items():
-        parser.add_argument(f"--{key.replace('_', '-')}", type=float if key == "stereo_tolerance" else str,
-                            metavar="S" if key == "stereo_tolerance" else "TOPIC", help=help_text)
+    for key in BAG_KEYS:
+        add_flag(parser, BagParams, key, metavar="S" if key == "stereo_tolerance" else "TOPIC")
 
 
 def bag_settings(values) -> dict:
     """The ROS bag settings of an argparse namespace or a config model (None where not given)."""
-    return {key: getattr(values, key, None) for key in BAG_FLAG_HELP}
+    return {key: getattr(values, key, None) for key in BAG_KEYS}
 
 
 def preset_names() -> list[str]:
@@ -176,7 +186,7 @@ def open_source(
     ``mono`` drops the right image of stereo sources (less to read for monocular estimators).
     ``origin``: the frame whose pose is the ground truth's origin (default: the first selected).
     ``world``: synthetic world settings (``world_keys()``) over the preset's.
-    ``topics``: a ROS bag's settings (BAG_FLAG_HELP's keys), over the preset's; None values are
+    ``topics``: a ROS bag's settings (BagParams' keys), over the preset's; None values are
     left to the preset.
     ``fov``: the horizontal field of view (degrees) of the pinhole camera assumed for an image
     folder, video or live camera that has no calibration (over the preset's ``fov``; default
@@ -193,7 +203,7 @@ def open_source(
             if kind != "synthetic":
                 raise ConfigError(f"world key {key!r} applies to the synthetic world only, not to {spec}")
             settings[key] = check_setting(key, value, keys[key], "world settings")
-    bag = {key: settings.pop(key) for key in BAG_FLAG_HELP if key in settings}
+    bag = {key: settings.pop(key) for key in BAG_KEYS if key in settings}
     bag.update({key: value for key, value in (topics or {}).items() if value is not None})
     if isinstance(calibration, Camera):
         camera = calibration
@@ -236,7 +246,7 @@ def _open(kind, target, spec, preset, settings, camera, grey, fps, mono, origin,
     if kind == "rosbag":
         from services.source.rosbag import RosbagSource
 
-        unknown = sorted(set(bag) - set(BAG_FLAG_HELP))
+        unknown = sorted(set(bag) - set(BAG_KEYS))
         if unknown:
             raise ConfigError(f"unknown ROS bag setting {unknown[0]!r}")
         return RosbagSource(target, camera=camera, grey=grey, mono=mono, origin=origin, **bag, **selection)
