@@ -311,6 +311,24 @@ def test_the_run_settings_are_declared_once():
         assert field.name not in RunConfig.model_fields and actions[field.name].help.startswith(field.metadata["help"])
 
 
+def test_what_the_run_passes_on_is_declared_with_its_service():
+    """[run]'s keys that a service reads (the source's fov and bag topics, the place recognition,
+    a saved map) carry the service's description and bounds, with None for "the service's"."""
+    from services.loopclosure.service import LoopClosureConfig
+    from services.pipeline.runner import RunConfig
+    from services.source.service import SourceConfig
+
+    for service, name in ((SourceConfig, "fov"), (SourceConfig, "odom_topic"), (SourceConfig, "stereo_tolerance"),
+                          (LoopClosureConfig, "place_recognition"), (LoopClosureConfig, "fleet"),
+                          (LoopClosureConfig, "map"), (LoopClosureConfig, "localize")):
+        declared, passed = service.model_fields[name], RunConfig.model_fields[name]
+        assert passed.description.startswith(declared.description.rstrip(".")), name
+    assert RunConfig.model_fields["fov"].default is None
+    for bad in ({"fov": 180}, {"stereo_tolerance": 0}, {"place_recognition": "orb"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            RunConfig(source="synthetic:0", **bad)
+
+
 def test_the_runtime_and_service_flags_come_from_their_declarations():
     from services.cli.service import service_parser
     from services.common.runtime import RuntimeConfig
