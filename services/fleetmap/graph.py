@@ -28,6 +28,9 @@ place (the relative pose measured from the images by the revisiting robot's loop
   as large as the set of accepted ones, every closure between the two goes back to pending (the accepted ones
   out of the graph) and the parts are decided again from all of them.
 
+`joined_at` holds, per robot, the newest of its frames the join's closures name; `placed_at` its
+newest frame the map had heard of when it was joined (its experiences' and its revisits' frames).
+
 Everything is deterministic in the order of its inputs, so a journal of them (store.py) rebuilds
 the same map; `state` / `restore` and `rebase` checkpoint it as the experience map does: the
 solver is rebuilt from the Python-side factors at the current estimates, live and restored alike.

@@ -7,10 +7,11 @@ and publishes `fleet/<robot>/pose` (FleetPose), `fleet/update` (FleetUpdate, at 
 UPDATE_PERIOD_S) and answers `fleet/snapshot`. Its inputs are journaled in the order applied
 (store.py), so a restart rebuilds the same map; it then catches up: a robot's map it lacks, or
 lacks a part of (a `map/update` whose links do not follow on from the ones it has, or the robot's
-expmap status counting more than it holds), comes from that robot's `map/snapshot`; closures it missed, from the robot's `fleet/closures?from=N` (asked every
-`sync_period` seconds of every live loopclosure); a closure's frame whose `map/pose` it missed is
-placed by the robot's `map/frames`. A robot's own map does not wait for any of this: the fleet map
-only listens."""
+expmap status counting more than it holds), comes from that robot's `map/snapshot`; closures it
+missed, from the robot's `fleet/closures?from=N` (asked every `sync_period` seconds of every live
+loopclosure). A closure's frames are placed by the robot's `map/frames` (its map's own record of
+each frame) once its `map/pose` has passed them. A robot's own map does not wait for any of this:
+the fleet map only listens."""
 
 from __future__ import annotations
 
