@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 UPDATE_PERIOD_S = 0.5
 QUERY_TIMEOUT_S = 3.0
 FRAMES_KEPT = 200_000   # frame placements kept per robot (from map/pose and map/frames), for closures of earlier frames
+FRAMES_PATIENCE = 10    # sync periods without an answer from a robot's map/frames before its map/pose places frames
 
 
 class _Fields(BaseModel):
@@ -66,7 +67,7 @@ class _Robot:
 
     def __init__(self, sync_period: float):
         self.poses: dict[int, tuple[float, float, float]] = {}   # its experiences in its own map, as last published
-        self.frames = FramePlacements(FRAMES_KEPT, sync_period)   # frame → (experience, offset)
+        self.frames = FramePlacements(FRAMES_KEPT, sync_period, FRAMES_PATIENCE * sync_period)
         self.needs_snapshot = False
 
 

@@ -364,17 +364,20 @@ def test_frame_placements_take_the_maps_own_record_over_a_stale_map_pose():
         asked.append((first, last))
         return [(f, *record[f]) for f in range(first, last + 1)]
 
-    frames = FramePlacements(kept=8, retry=3.0)
+    frames = FramePlacements(kept=8, retry=3.0, patience=30.0)
     for f in range(10):   # map/pose offsets against experience poses published late: 0.25 m off
         frames.pose(f, f // 2, (0.5 * (f % 2) - 0.071, -0.229, 0.0))
     assert frames.find(10, ask, now=0.0) is None and not asked   # not posed yet: wait
     assert frames.find(4, ask, now=0.0) == record[4] and asked == [(4, 9)]
     assert frames.find(7, ask, now=0.0) == record[7] and asked == [(4, 9)]   # kept from the one answer
     assert len(frames.posed) == 8 and len(frames.placed) <= 8
-    silent = FramePlacements(kept=8, retry=3.0)
+    silent = FramePlacements(kept=8, retry=3.0, patience=30.0)
     for f in range(10):
         silent.pose(f, f // 2, (0.1, 0.0, 0.0))
     calls = []
-    assert silent.find(5, lambda *span: calls.append(span), now=0.0) == (2, (0.1, 0.0, 0.0))   # no answer: the map/pose's
-    assert silent.find(6, lambda *span: calls.append(span), now=1.0) == (3, (0.1, 0.0, 0.0)) and len(calls) == 1
-    assert silent.find(6, ask, now=3.5) == record[6]   # asked again after `retry`
+    assert silent.find(5, lambda *span: calls.append(span), now=0.0) is None        # no answer: wait
+    assert silent.find(5, lambda *span: calls.append(span), now=1.0) is None and len(calls) == 1   # asked again ...
+    assert silent.find(5, lambda *span: calls.append(span), now=3.0) is None and len(calls) == 2   # ... after `retry`
+    assert silent.find(6, ask, now=6.0) == record[6]   # it answers: its record
+    assert silent.find(5, lambda *span: None, now=10.0) is None
+    assert silent.find(5, lambda *span: None, now=40.0) == (2, (0.1, 0.0, 0.0))   # silent for `patience`: map/pose's
