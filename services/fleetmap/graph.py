@@ -28,6 +28,9 @@ place (the relative pose measured from the images by the revisiting robot's loop
   as large as the set of accepted ones, every closure between the two goes back to pending (the accepted ones
   out of the graph) and the parts are decided again from all of them.
 
+`joined_at` holds, per robot, the newest of its frames the join's closures name; `placed_at` its
+newest frame the map had heard of when it was joined (its experiences' and its revisits' frames).
+
 Everything is deterministic in the order of its inputs, so a journal of them (store.py) rebuilds
 the same map; `state` / `restore` and `rebase` checkpoint it as the experience map does: the
 solver is rebuilt from the Python-side factors at the current estimates, live and restored alike.
@@ -150,6 +153,8 @@ class FleetMap:
         self.estimates: dict[str, np.ndarray] = {}     # per robot, (E, 3) poses in its part's frame
         self.part: dict[str, str] = {}                 # robot → the robot whose frame its part is in
         self.joined_at: dict[str, int] = {}            # robot → its frame when it joined the fleet frame
+        self.latest: dict[str, int] = {}               # robot → its newest frame the map has heard of
+        self.placed_at: dict[str, int] = {}            # robot → its newest frame heard when it joined the fleet frame
         self.closures: list[Closure] = []
         self._closure_at: dict[tuple[str, int], int] = {}
         self.priors: dict[str, float] = {}             # robot → the sigma of its first experience's prior
@@ -174,7 +179,7 @@ class FleetMap:
             self.part[robot] = robot
             self.priors[robot] = PRIOR_SIGMA
             if self.frame_robot == robot:
-                self.joined_at[robot] = int(experiences[0][4])
+                self.joined_at[robot] = self.placed_at[robot] = int(experiences[0][4])
         # The robot's map frame → its part's frame, from its newest experience (initial values only).
         carry = self._carry(robot)
         fresh = []
@@ -183,6 +188,7 @@ class FleetMap:
                 raise ValueError(f"robot {robot}: experience {ident} follows {len(state.poses) - 1}")
             state.poses.append((float(x), float(y), float(heading)))
             state.created.append(int(frame))
+            self.latest[robot] = max(self.latest.get(robot, int(frame)), int(frame))
             fresh.append(compose(carry, (x, y, heading)) if carry is not None else (x, y, heading))
             result.new.append((robot, ident))
         if fresh:
@@ -220,6 +226,7 @@ class FleetMap:
         for name, ident in ((closure.robot, closure.experience), (closure.matched_robot, closure.matched_experience)):
             if name not in self.robots or not 0 <= ident < len(self.robots[name].poses):
                 raise ValueError(f"closure {closure.index} of robot {closure.robot}: robot {name} has no experience {ident}")
+        self.latest[closure.robot] = max(self.latest.get(closure.robot, closure.frame), closure.frame)
         link, covariance = _link_of(closure)
         entry = Closure(closure.robot, closure.index, closure.frame, closure.experience, closure.matched_robot,
                         closure.matched_frame, closure.matched_experience, link, covariance)
@@ -326,6 +333,9 @@ class FleetMap:
                 frames = [c.frame if c.robot == robot else c.matched_frame for c in chosen
                           if robot in (c.robot, c.matched_robot)]
                 self.joined_at[robot] = max(frames) if frames else self.robots[robot].created[-1]
+                # when it was placed: its newest frame the map had heard of (a closure's frame of the
+                # robot as the place's, in joined_at, may be long past)
+                self.placed_at[robot] = max(self.joined_at[robot], self.latest.get(robot, self.joined_at[robot]))
         self._rebuild(result)
 
     def _maybe_split(self, one: str, other: str, result: Result) -> None:
@@ -386,6 +396,7 @@ class FleetMap:
         for name in list(self.joined_at):
             if not self.joined(name):
                 del self.joined_at[name]
+                self.placed_at.pop(name, None)
 
     def _seniority(self, robot: str) -> tuple[int, int]:
         return (0 if robot == self.frame_robot else 1, self.robots[robot].slot)
@@ -526,7 +537,9 @@ class FleetMap:
         return {"robots": [{"name": s.name, "slot": s.slot, "poses": [list(p) for p in s.poses], "created": s.created,
                             "links": s.links, "aliased": sorted(s.aliased)} for s in self.robots.values()],
                 "estimates": {robot: e.tolist() for robot, e in self.estimates.items()},
-                "part": dict(self.part), "joined_at": dict(self.joined_at), "priors": dict(self.priors),
+                "part": dict(self.part), "joined_at": dict(self.joined_at), "latest": dict(self.latest),
+                "placed_at": dict(self.placed_at),
+                "priors": dict(self.priors),
                 "factors": [[kind, robot, int(s), int(t), list(tr), np.asarray(c).ravel().tolist()]
                             for kind, robot, s, t, tr, c in self.factors],
                 "closures": [{**{f.name: getattr(c, f.name) for f in dataclasses.fields(c) if f.name != "covariance"},
@@ -548,6 +561,7 @@ class FleetMap:
                                                [int(v) for v in r["created"]], int(r["links"]), set(r["aliased"]))
         fleet.estimates = {robot: np.array(e, dtype=float).reshape(-1, 3) for robot, e in state["estimates"].items()}
         fleet.part, fleet.joined_at, fleet.priors = dict(state["part"]), dict(state["joined_at"]), dict(state["priors"])
+        fleet.latest, fleet.placed_at = dict(state["latest"]), dict(state["placed_at"])
         fleet.factors = [(kind, robot, int(s), int(t), tuple(tr), np.array(c, dtype=float).reshape(3, 3))
                          for kind, robot, s, t, tr, c in state["factors"]]
         for record in state["closures"]:

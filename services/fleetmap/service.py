@@ -7,10 +7,11 @@ and publishes `fleet/<robot>/pose` (FleetPose), `fleet/update` (FleetUpdate, at 
 UPDATE_PERIOD_S) and answers `fleet/snapshot`. Its inputs are journaled in the order applied
 (store.py), so a restart rebuilds the same map; it then catches up: a robot's map it lacks, or
 lacks a part of (a `map/update` whose links do not follow on from the ones it has, or the robot's
-expmap status counting more than it holds), comes from that robot's `map/snapshot`; closures it missed, from the robot's `fleet/closures?from=N` (asked every
-`sync_period` seconds of every live loopclosure); a closure's frame whose `map/pose` it missed is
-placed by the robot's `map/frames`. A robot's own map does not wait for any of this: the fleet map
-only listens."""
+expmap status counting more than it holds), comes from that robot's `map/snapshot`; closures it
+missed, from the robot's `fleet/closures?from=N` (asked every `sync_period` seconds of every live
+loopclosure). A closure's frames are placed by the robot's `map/frames` (its map's own record of
+each frame) once its `map/pose` has passed them. A robot's own map does not wait for any of this:
+the fleet map only listens."""
 
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ from services.common.geometry import between
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import config_fields, params_of
-from services.fleetmap.catchup import ClosureIntake, map_increment
+from services.fleetmap.catchup import ClosureIntake, FramePlacements, map_increment
 from services.fleetmap.consistency import ConsistencyParams
 from services.fleetmap.graph import ClosureInput, FleetParams, Result
 from services.fleetmap.store import FleetStore, closure_record, map_record
@@ -42,7 +43,8 @@ log = logging.getLogger(__name__)
 
 UPDATE_PERIOD_S = 0.5
 QUERY_TIMEOUT_S = 3.0
-FRAMES_KEPT = 200_000   # frame placements kept per robot (from map/pose), for closures of earlier frames
+FRAMES_KEPT = 200_000   # frame placements kept per robot (from map/pose and map/frames), for closures of earlier frames
+FRAMES_PATIENCE = 10    # sync periods without an answer from a robot's map/frames before its map/pose places frames
 
 
 class _Fields(BaseModel):
@@ -63,9 +65,9 @@ FleetMapConfig = create_model("FleetMapConfig", __base__=_Fields, __doc__=_Field
 class _Robot:
     """What the adapter knows of one robot beyond the fleet map's inputs (not journaled)."""
 
-    def __init__(self):
+    def __init__(self, sync_period: float):
         self.poses: dict[int, tuple[float, float, float]] = {}   # its experiences in its own map, as last published
-        self.frames: dict[int, tuple[int, tuple[float, float, float]]] = {}   # frame → (experience, offset)
+        self.frames = FramePlacements(FRAMES_KEPT, sync_period, FRAMES_PATIENCE * sync_period)
         self.needs_snapshot = False
 
 
@@ -100,7 +102,7 @@ class FleetMapService(Service):
         self._last_header = None
 
     def _feed(self, robot: str) -> _Robot:
-        return self.feeds.setdefault(robot, _Robot())
+        return self.feeds.setdefault(robot, _Robot(self.config.sync_period))
 
     def _remember(self, record: dict, result: Result) -> None:
         """A journaled input replayed: what the adapter derives from it."""
@@ -171,9 +173,7 @@ class FleetMapService(Service):
         state = self.fleet.robots.get(robot)
         if experience in feed.poses:
             offset = between(feed.poses[experience], pose)
-            feed.frames[message.header.seq] = (experience, offset)
-            if len(feed.frames) > FRAMES_KEPT:
-                del feed.frames[min(feed.frames)]
+            feed.frames.pose(message.header.seq, experience, offset)
             if state is not None and experience < len(state.poses):
                 x, y, heading = self.fleet.pose(robot, experience, offset)
                 self._send(topics.fleet_pose_topic(robot), FleetPose(
@@ -227,14 +227,12 @@ class FleetMapService(Service):
                 self.store.checkpoint(self.fleet)
 
     def _placement(self, robot: str, frame: int):
-        """(experience, offset) of a robot's frame, from its map/pose, else from its map/frames."""
+        """(experience, offset) of a robot's frame once its map has posed it (FramePlacements)."""
         feed = self.feeds.get(robot)
         state = self.fleet.robots.get(robot)
         if feed is None or state is None:
             return None
-        found = feed.frames.get(frame)
-        if found is None and feed.frames and frame < max(feed.frames):
-            found = self._query_frames(robot, frame)
+        found = feed.frames.find(frame, lambda first, last: self._query_frames(robot, first, last), time.monotonic())
         if found is None or found[0] >= len(state.poses):
             return None
         return found
@@ -249,8 +247,11 @@ class FleetMapService(Service):
             return index, (0.0, 0.0, 0.0)
         return self._placement(robot, frame)
 
-    def _query_frames(self, robot: str, frame: int):
-        for reply in self.session.get(f"{topics.key(robot, 'map/frames')}?from={frame};to={frame}", timeout=QUERY_TIMEOUT_S):
+    def _query_frames(self, robot: str, first: int, last: int) -> list | None:
+        """The robot's map/frames from ``first`` to ``last``: (frame, experience, offset) rows, None
+        without an answer."""
+        rows = None
+        for reply in self.session.get(f"{topics.key(robot, 'map/frames')}?from={first};to={last}", timeout=QUERY_TIMEOUT_S):
             if reply.ok is None:
                 continue
             try:
@@ -258,12 +259,8 @@ class FleetMapService(Service):
             except codec.CodecError as error:
                 log.warning("fleetmap: map/frames of robot %s: %s", robot, error)
                 continue
-            for placement in message.frames:
-                found = (placement.experience, (placement.dx, placement.dy, placement.dheading))
-                self.feeds[robot].frames[placement.frame] = found
-                if placement.frame == frame:
-                    return found
-        return None
+            rows = (rows or []) + [(p.frame, p.experience, (p.dx, p.dy, p.dheading)) for p in message.frames]
+        return rows
 
     # --- catching up -------------------------------------------------------------------------------
     def _maybe_sync(self) -> None:

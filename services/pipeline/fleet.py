@@ -393,6 +393,7 @@ def evaluate_fleet(folder: Path, names: list[str], online: dict, delays: dict[st
             largest = distance if largest is None else max(largest, distance)
     meet = meeting(truths, starts, delays)
     joined_at = {robot: fleet.joined_at.get(robot) for robot in names}
+    placed_at = {robot: fleet.placed_at.get(robot) for robot in names}
     both = [(placed[r][f], truths[r][f]) for r in names if fleet.joined(r) for f in sorted(placed[r])]
     whole = None
     if len(both) >= 3:
@@ -413,9 +414,9 @@ def evaluate_fleet(folder: Path, names: list[str], online: dict, delays: dict[st
             "inter_robot_closures_pending": decided["pending"],
             "inter_robot_closures_unmeasured": decided["unmeasured"],
             "accepted_largest_distance_m": largest,
-            "joined_at": joined_at, "ate_m": ate, "online_error_after_join_m": online_error,
+            "joined_at": joined_at, "placed_at": placed_at, "ate_m": ate, "online_error_after_join_m": online_error,
             "first_meeting": meet,
-            "frames_to_join": {r: (joined_at[r] - meet[r]) if joined_at[r] is not None and meet[r] is not None
+            "frames_to_join": {r: (placed_at[r] - meet[r]) if placed_at[r] is not None and meet[r] is not None
                                and r != fleet.frame_robot else None for r in names},
             "whole_fleet": whole}
 
@@ -430,7 +431,8 @@ def summary_rows(result: dict, robots: dict) -> list[tuple[str, object, str]]:
              f"false: frames > {TRUE_CLOSURE_M:g} m apart")]
     for robot in result["robots"]:
         summary = robots.get(robot, {})
-        rows.append((f"{robot}: joined at frame", result["joined_at"][robot], ""))
+        rows.append((f"{robot}: joined at frame", result["joined_at"][robot], f"its newest frame then: "
+                     f"{result.get('placed_at', {}).get(robot)}"))
         rows.append((f"{robot}: first meeting, frames to join", f"{result['first_meeting'][robot]}, "
                      f"{result['frames_to_join'][robot]}", "frames"))
         rows.append((f"{robot}: fleet-frame error, no alignment (final map)", result["ate_m"][robot], "m (RMSE)"))

@@ -327,3 +327,57 @@ def test_catching_up_live_late_and_after_a_restart_fuses_nothing_twice(two, tmp_
             assert np.allclose(result.estimates[name], reference.estimates[name], atol=1e-9)
     for name in ("a", "b"):
         assert np.array_equal(rebuilt.estimates[name], fleet.fleet.estimates[name])
+
+
+def test_a_robot_met_at_its_own_places_is_placed_at_its_newest_frame():
+    """Robot a revisits the places robot b passed before (b ahead of it on the loop): the join's
+    closures name b's frames long past; placed_at is b's newest frame the map had heard of, within
+    the three closures a join takes of the first one."""
+    truth_a, ea, la = robot(0)
+    truth_b, eb, lb = robot(40)
+    fleet = FleetMap(FleetParams(frame_robot="a"))
+    fleet.add_map("a", ea[:1], [])
+    fleet.add_map("b", eb[:30], lb[:29])   # b's map up to its frame 29
+    first = None
+    for k in range(30):   # a's experience 40 + k is b's k: a drives behind b, b one experience a frame
+        fleet.add_map("a", ea[len(fleet.robots["a"].poses):41 + k], la[len(fleet.robots["a"].poses) - 1:40 + k])
+        fleet.add_map("b", eb[30 + k:31 + k], lb[29 + k:30 + k])
+        pose = between(truth_b[k], truth_a[40 + k])   # a's frame 40 + k in b's place k's frame
+        fleet.add_closure(ClosureInput("a", k, 40 + k, 40 + k, (0.0, 0.0, 0.0), "b", k, k, (0.0, 0.0, 0.0),
+                                       "stereo", pose, COVARIANCE))
+        first = 30 + k if first is None else first   # b's newest frame at the first closure
+        if fleet.joined("b"):
+            break
+    assert fleet.joined_at["b"] == 2                        # the newest of its places the closures name
+    assert fleet.placed_at["b"] == 32 and fleet.placed_at["b"] - first <= 2
+    assert fleet.placed_at["a"] == 0
+    restored = FleetMap.restore(fleet.params, fleet.consistency, fleet.state())
+    assert restored.placed_at == fleet.placed_at and restored.latest == fleet.latest
+
+
+def test_frame_placements_take_the_maps_own_record_over_a_stale_map_pose():
+    from services.fleetmap.catchup import FramePlacements
+    asked = []
+    record = {f: (f // 2, (0.5 * (f % 2), 0.0, 0.0)) for f in range(20)}   # the map's own: an experience a 2 frames
+
+    def ask(first, last):
+        asked.append((first, last))
+        return [(f, *record[f]) for f in range(first, last + 1)]
+
+    frames = FramePlacements(kept=8, retry=3.0, patience=30.0)
+    for f in range(10):   # map/pose offsets against experience poses published late: 0.25 m off
+        frames.pose(f, f // 2, (0.5 * (f % 2) - 0.071, -0.229, 0.0))
+    assert frames.find(10, ask, now=0.0) is None and not asked   # not posed yet: wait
+    assert frames.find(4, ask, now=0.0) == record[4] and asked == [(4, 9)]
+    assert frames.find(7, ask, now=0.0) == record[7] and asked == [(4, 9)]   # kept from the one answer
+    assert len(frames.posed) == 8 and len(frames.placed) <= 8
+    silent = FramePlacements(kept=8, retry=3.0, patience=30.0)
+    for f in range(10):
+        silent.pose(f, f // 2, (0.1, 0.0, 0.0))
+    calls = []
+    assert silent.find(5, lambda *span: calls.append(span), now=0.0) is None        # no answer: wait
+    assert silent.find(5, lambda *span: calls.append(span), now=1.0) is None and len(calls) == 1   # asked again ...
+    assert silent.find(5, lambda *span: calls.append(span), now=3.0) is None and len(calls) == 2   # ... after `retry`
+    assert silent.find(6, ask, now=6.0) == record[6]   # it answers: its record
+    assert silent.find(5, lambda *span: None, now=10.0) is None
+    assert silent.find(5, lambda *span: None, now=40.0) == (2, (0.1, 0.0, 0.0))   # silent for `patience`: map/pose's
