@@ -128,6 +128,16 @@ class LoopClosure(Message):
     geometry_error: str = Field("", description="Why the geometry failed (measurement none), e.g. 'too few inliers (7 < 20)'.")
 
 
+class FramePlacement(Model):
+    """Where the map puts one frame: at an experience, and the offset from it."""
+
+    frame: int = Field(ge=0, description="The frame (the map's numbering).")
+    experience: int = Field(ge=0, description="The experience the robot was at.")
+    dx: float = Field(description="Forward offset of the frame's pose in the experience's frame, metres.")
+    dy: float = Field(description="Leftward offset, metres.")
+    dheading: float = Field(description="Heading of the frame minus the experience's, radians.")
+
+
 class MapPose(Message):
     """`map/pose`: the map-corrected robot pose (geometry_msgs/PoseStamped plus the experience)."""
 
@@ -138,6 +148,10 @@ class MapPose(Message):
     localized: bool = Field(
         True, description="The pose is in the map's frame. False while a localisation on a saved map is not placed yet (or "
                           "lost), and while a later session of a map is not joined to it: the pose is then the odometry's.")
+    placement: FramePlacement | None = Field(
+        None, description="Where the map puts this frame: its experience and the offset from it, as `map/frames` answers. "
+                          "Whoever places the experience elsewhere (the fleet map) places the robot by it, whatever pose "
+                          "of the experience it heard last. None: no experience of its own (a localisation).")
 
 
 class Experience(Model):
@@ -184,16 +198,6 @@ class MapSnapshot(Message):
     header: Header = Field(description="Last frame applied to the map and its timestamp.")
     experiences: list[Experience] = Field(description="Every experience.")
     links: list[Link] = Field(description="Every link.")
-
-
-class FramePlacement(Model):
-    """Where the map puts one frame: at an experience, and the offset from it."""
-
-    frame: int = Field(ge=0, description="The frame (the map's numbering).")
-    experience: int = Field(ge=0, description="The experience the robot was at.")
-    dx: float = Field(description="Forward offset of the frame's pose in the experience's frame, metres.")
-    dy: float = Field(description="Leftward offset, metres.")
-    dheading: float = Field(description="Heading of the frame minus the experience's, radians.")
 
 
 class MapFrames(Message):

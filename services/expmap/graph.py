@@ -112,6 +112,7 @@ class FrameResult:
     frame: int
     experience: int
     pose: tuple[float, float, float]          # the robot's map pose
+    offset: tuple[float, float, float] | None = None   # the pose in its experience's frame (None: localising, no experience of its own)
     new_experiences: list[int] = field(default_factory=list)
     new_links: list[Link] = field(default_factory=list)
     moved: list[int] = field(default_factory=list)   # experiences moved by the optimiser beyond 1 mm / 0.1 mrad
@@ -240,7 +241,7 @@ class ExperienceMap:
         moved = self.optimizer.solve(closure_frame=any(fate in ("accepted", "rejected") for _, fate, _ in result.decisions))
         result.moved = [i for i in moved if i not in result.new_experiences]
         result.experience = self.current
-        result.pose = compose(tuple(self._poses[self.current]), offset)
+        result.pose, result.offset = compose(tuple(self._poses[self.current]), offset), offset
         result.localized = self.parts[self.current] == 0
         self._frame_at[frame] = len(self.frames)
         self.frames.append((frame, self.current, offset))

@@ -289,9 +289,13 @@ class ExpMapService(Service):
 
     def _publish_pose(self, pose: GridPose, result: FrameResult) -> None:
         x, y, heading = result.pose
+        placement = None if result.offset is None else FramePlacement(
+            frame=result.frame, experience=result.experience, dx=result.offset[0], dy=result.offset[1],
+            dheading=result.offset[2])
         self.publish("map/pose", MapPose(header=pose.header.model_copy(update={"frame_id": "map"}),
                                          pose=planar_pose(x, y, heading), heading=heading,
-                                         experience_id=max(result.experience, 0), localized=result.localized))
+                                         experience_id=max(result.experience, 0), localized=result.localized,
+                                         placement=placement))
 
     def _remember(self, result: FrameResult) -> None:
         self.recent[result.frame] = result

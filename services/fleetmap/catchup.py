@@ -76,7 +76,8 @@ class FramePlacements:
     experience's pose as last published lags the map's own record whenever the map has moved the
     experience since without publishing it (on the campus 185 of 493 closures were so off, by up to
     0.25 m, and by 0.9 m while map/frames did not answer: hundreds of standard deviations). So a
-    frame the map has posed is placed by the map's own record (`map/frames`, asked through ``ask(first, last)`` for
+    frame is placed by the map's own record: the placement its map/pose carries, or for a frame
+    whose map/pose had none or was missed, `map/frames`, asked through ``ask(first, last)`` for
     every frame from it to the newest posed: a list of (frame, experience, offset), None when it
     does not answer). While it does not answer (a map busy solving, a robot cut off) the frame
     waits, asked again every ``retry`` seconds; only after ``patience`` seconds of silence (a map
@@ -90,11 +91,17 @@ class FramePlacements:
         self.down_until = -float("inf")
         self.silent_since: float | None = None
 
-    def pose(self, frame: int, experience: int, offset: tuple[float, float, float]) -> None:
+    def pose(self, frame: int, experience: int, offset: tuple[float, float, float], recorded: bool = False) -> None:
+        """A frame's map/pose: ``recorded`` when it carries the map's own placement of the frame
+        (`MapPose.placement`), which then needs no asking."""
         self.posed[frame] = (experience, offset)
         self.newest = max(self.newest, frame)
         if len(self.posed) > self.kept:
             del self.posed[next(iter(self.posed))]   # the oldest heard
+        if recorded:
+            self.placed[frame] = (experience, offset)
+            if len(self.placed) > self.kept:
+                del self.placed[min(self.placed)]
 
     def find(self, frame: int, ask, now: float):
         """The frame's (experience, offset), or None while it must wait (not posed yet, or its

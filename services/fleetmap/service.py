@@ -171,17 +171,21 @@ class FleetMapService(Service):
         experience = message.experience_id
         pose = (message.pose.position.x, message.pose.position.y, heading_of(message.pose))
         state = self.fleet.robots.get(robot)
-        if experience in feed.poses:
-            offset = between(feed.poses[experience], pose)
-            feed.frames.pose(message.header.seq, experience, offset)
+        placement = message.placement
+        if placement is not None or experience in feed.poses:
+            # The map's own placement of the frame; a pose against the experience's pose as last
+            # heard lags when the map/update that moved it comes after this map/pose (per key order only).
+            offset = (placement.dx, placement.dy, placement.dheading) if placement is not None else \
+                between(feed.poses[experience], pose)
+            feed.frames.pose(message.header.seq, experience, offset, recorded=placement is not None)
             if state is not None and experience < len(state.poses):
                 x, y, heading = self.fleet.pose(robot, experience, offset)
                 self._send(topics.fleet_pose_topic(robot), FleetPose(
                     header=message.header.model_copy(update={"frame_id": "map"}), pose=planar_pose(x, y, heading),
                     heading=heading, experience_id=experience, joined=self.fleet.joined(robot)))
                 self.counters.published += 1
-        elif state is None:
-            self._feed(robot).needs_snapshot = True
+        if state is None and experience not in feed.poses:
+            feed.needs_snapshot = True
         if any(name == robot for name, _ in self.intake.waiting):
             self._resolve()
         self._publish_update()

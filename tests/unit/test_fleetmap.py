@@ -381,3 +381,40 @@ def test_frame_placements_take_the_maps_own_record_over_a_stale_map_pose():
     assert silent.find(6, ask, now=6.0) == record[6]   # it answers: its record
     assert silent.find(5, lambda *span: None, now=10.0) is None
     assert silent.find(5, lambda *span: None, now=40.0) == (2, (0.1, 0.0, 0.0))   # silent for `patience`: map/pose's
+
+
+def test_a_robots_fleet_pose_is_placed_by_its_maps_own_placement_of_the_frame(tmp_path):
+    """map/pose and map/update are on different keys, so the update that moved an experience may
+    come after the pose of a frame at it: the fleet pose is placed by the frame's placement the
+    map/pose carries, not by the pose against the experience's pose as last heard."""
+    from schemas import Experience, FramePlacement, Header, Link, MapPose, MapUpdate, Time
+    from services.common.convert import planar_pose
+    from services.common.runtime import RuntimeConfig
+    from services.fleetmap.service import FleetMapConfig, FleetMapService
+
+    service = FleetMapService(RuntimeConfig(), FleetMapConfig(store=tmp_path / "fleet_map.log"))
+    sent = []
+    service._send = lambda topic, message: sent.append(message)   # the adapter's output, not a session
+    service._publish_update = lambda force=False: None
+    service._maybe_sync = lambda: None
+
+    def head(seq):
+        return Header(seq=seq, stamp=Time.from_seconds(seq * 0.1), frame_id="map", robot="a")
+
+    link = Link(source=0, target=1, dx=1.0, dy=0.0, dheading=0.0, frame=1, covariance=[1e-4, 0, 0, 0, 1e-4, 0, 0, 0, 1e-6])
+    service.on_map_update(MapUpdate(header=head(1), experiences=[Experience(id=0, x=0.0, y=0.0, heading=0.0, template_id=0, frame=0),
+                                                                 Experience(id=1, x=1.0, y=0.0, heading=0.0, template_id=1, frame=1)],
+                                    links=[link], experience_count=2, link_count=1))
+    # The robot's map has since moved experience 1 to x = 1.3 (that map/update is still on its
+    # way): its frame 5 is 0.2 m ahead of the experience, at x = 1.5 on the robot's map.
+    placed = FramePlacement(frame=5, experience=1, dx=0.2, dy=0.0, dheading=0.0)
+    for placement in (placed, None):
+        sent.clear()
+        service.on_map_pose(MapPose(header=head(5), pose=planar_pose(1.5, 0.0, 0.0), heading=0.0, experience_id=1,
+                                    placement=placement))
+        (pose,) = sent
+        expected = 1.2 if placement is not None else 1.5   # without it: the stale experience pose
+        assert pose.pose.position.x == pytest.approx(expected, abs=1e-6), placement
+        if placement is not None:   # a closure of that frame is placed by it too, without asking map/frames
+            never = lambda first, last: pytest.fail("map/frames asked for a frame its map/pose placed")  # noqa: E731
+            assert service.feeds["a"].frames.find(5, never, now=0.0) == (1, (0.2, 0.0, 0.0))
