@@ -112,8 +112,12 @@ def test_two_sites_cut_apart_and_joined_again_lose_no_place_and_fuse_nothing_twi
     members = {}
     try:
         time.sleep(3)
+        # Paced (12 frames/s, 20 s a robot) so that both are still running when the 10 s cut ends,
+        # however fast the machine.
+        paced = tmp_path / "paced.toml"
+        paced.write_text("[source]\nrate = 12.0\n")
         base = RunConfig(source="synthetic:0", preset="synthetic", egomotion="passthrough", n_frames=240, fleet=True,
-                         origin=0, mcap=False)
+                         origin=0, mcap=False, config_file=paced)
         for robot, start_frame, site, router in (("a", 0, site_a, router_a), ("b", 120, site_b, router_b)):
             folder = tmp_path / robot
             folder.mkdir()
