@@ -7,10 +7,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from services.common.settings import add_renamed_flag
-from services.egomotion import ESTIMATORS
+from services.common.run_settings import RunOutputParams, RunParams
+from services.common.settings import add_field_flag, add_flag, add_renamed_flag
+from services.egomotion import EgomotionConfig
 from services.offline.odometry import run_offline, summary_rows
 from services.evaluation.results import format_table
+from services.source.service import SourceConfig
 from services.source.spec import add_bag_arguments, add_world_arguments, bag_settings, parse_world_flags
 
 
@@ -32,25 +34,24 @@ def register(subparsers) -> None:
         "egomotion.kitti.txt (dead-reckoned), groundtruth.tum when known, increments.csv, metrics.json, config.json "
         "and trajectory.png; print a metric table.",
     )
-    parser.add_argument("--source", required=True, metavar="SPEC",
-                        help="kitti:PATH, stereo:PATH, images:PATH, video:FILE, camera:N, synthetic:SEED or rosbag:PATH")
-    parser.add_argument("--estimator", metavar="NAME", help=f"{', '.join(ESTIMATORS)} (default: the one the preset or config names, else scanline)")
-    parser.add_argument("--preset", metavar="NAME", help="dataset preset for the source and the estimator (nubot, kitti, stlucia, synthetic, campus) or a preset file")
+    add_flag(parser, RunParams, "source", required=True, metavar="SPEC")
+    add_field_flag(parser, EgomotionConfig, "estimator", choices=None, metavar="NAME")   # a bad name: resolve_estimator's one line
+    add_flag(parser, RunParams, "preset", metavar="NAME|FILE")
     parser.add_argument("--config", type=Path, metavar="FILE", help="config file whose [egomotion] table (or a file of that table's shape) overrides the preset "
                              "(docs/egomotion.md)")
-    parser.add_argument("--calibration", type=Path, metavar="FILE", help="camera calibration file (docs/sources.md)")
-    parser.add_argument("--start", type=int, default=0, help="first frame (default 0)")
-    parser.add_argument("--stop", type=int, help="frame to stop before (default: the end)")
-    parser.add_argument("--stride", dest="step", type=int, default=1, metavar="N", help="use every N-th frame (default 1)")
+    add_flag(parser, RunParams, "calibration", metavar="FILE")
+    add_flag(parser, RunParams, "start", metavar="K", standalone=True)
+    add_field_flag(parser, SourceConfig, "stop", metavar="K")
+    add_flag(parser, RunParams, "step", flag="--stride", metavar="N", standalone=True)
     add_renamed_flag(parser, "--step", "--stride", dest="step", type=int)
-    parser.add_argument("--n-frames", type=int, metavar="N", help="process at most N frames")
+    add_flag(parser, RunParams, "n_frames", metavar="N", standalone=True)
     parser.add_argument("--reference", type=Path, metavar="FILE",
                         help="reference to score against, row k = frame k: TUM, KITTI poses, or a CSV of increments "
                         "(forward,left,yaw or LIBVISO2's table)")
     parser.add_argument("--shard-block", type=positive, metavar="N",
                         help="run the estimator in blocks of N frames as the egomotion service does (the increments of "
                              "a pipeline run, whatever its number of egomotion instances; docs/pipeline.md)")
-    parser.add_argument("--out", type=Path, metavar="DIR", help="results folder (default: results/<timestamp>/, with results/latest)")
+    add_flag(parser, RunOutputParams, "out", metavar="DIR")
     add_world_arguments(parser)
     add_bag_arguments(parser)
     parser.set_defaults(func=run)
