@@ -7,22 +7,11 @@ import importlib
 import logging
 import os
 
+from services.common.config import SERVICE_MODULES
 from services.common.runtime import add_runtime_flags, runtime_from_args
 from services.common.settings import CommandParser, add_flag, renamed_flags
 
-# Service name → adapter module; each exposes add_arguments(parser) and main(runtime, args) -> int.
-# Modules are imported only for the service being started, which keeps `gridslam` itself light.
-SERVICES: dict[str, str] = {
-    "source": "services.source.service",
-    "egomotion": "services.egomotion.service",
-    "gridcells": "services.gridcells.service",
-    "loopclosure": "services.loopclosure.service",
-    "expmap": "services.expmap.service",
-    "fleetmap": "services.fleetmap.service",
-    "viewer": "services.viewer.service",
-    "foxglove": "services.ros.foxglove",
-    "ros2": "services.ros.node",
-}
+SERVICES = SERVICE_MODULES   # name → adapter module: add_arguments(parser), main(runtime, args) -> int
 
 
 def register(subparsers) -> None:

@@ -33,6 +33,22 @@ ENV_PREFIX = "GRIDSLAM_"
 
 ModelT = TypeVar("ModelT", bound=BaseModel)
 
+# The services (name → adapter module) and so the tables of a config file: [runtime], [run] and
+# one per service. `gridslam service NAME` starts them by these modules (imported only for the
+# service being started); a config file's table of another name is refused.
+SERVICE_MODULES: dict[str, str] = {
+    "source": "services.source.service",
+    "egomotion": "services.egomotion.service",
+    "gridcells": "services.gridcells.service",
+    "loopclosure": "services.loopclosure.service",
+    "expmap": "services.expmap.service",
+    "fleetmap": "services.fleetmap.service",
+    "viewer": "services.viewer.service",
+    "foxglove": "services.ros.foxglove",
+    "ros2": "services.ros.node",
+}
+SECTIONS = ("runtime", "run", *SERVICE_MODULES)
+
 
 def read_toml(path: str | Path, what: str = "config file", error: type[Exception] = ConfigError) -> dict[str, Any]:
     """Parse a TOML file (a config, preset or calibration file: ``what``, in messages): the one
@@ -189,6 +205,11 @@ def load_config(
     if config_file is not None:
         content = read_toml(config_file)
         table = table_of(content, config_file) if table_of is not None else content.get(section, {})
+        if table is not content:   # a whole config file (not one of a table's own shape): its tables are known
+            unknown = [key for key, value in content.items() if isinstance(value, dict) and key not in (*SECTIONS, section)]
+            if unknown:
+                raise ConfigError(f"{config_file}: unknown table [{unknown[0]}] (a config file holds "
+                                  f"{', '.join(f'[{name}]' for name in SECTIONS)})")
         if not isinstance(table, dict):
             raise ConfigError(f"{config_file}: [{section}] must be a table")
         merge_tables(values, table)

@@ -245,6 +245,26 @@ def test_a_key_that_never_existed_is_refused(tmp_path):
         load_config(GridCellsConfig, "gridcells", config_file=path, environ={})
 
 
+def test_a_table_that_never_existed_is_refused_by_every_reader_of_the_file(tmp_path):
+    """A mistyped table is refused, whichever service reads the file (each reads its own table),
+    and gridslam odometry's --config too; the tables are the services gridslam service starts."""
+    from services.cli.service import SERVICES
+    from services.common.config import SECTIONS
+    from services.egomotion import egomotion_config
+    from services.gridcells.config import GridCellsConfig
+
+    assert set(SECTIONS) == {"runtime", "run", *SERVICES}
+    path = tmp_path / "typo.toml"
+    path.write_text("[gridcells]\ndecoder = \"fft\"\n[sterio]\nransac_iterations = 3\n")
+    with pytest.raises(ConfigError, match=r"unknown table \[sterio\]"):
+        load_config(GridCellsConfig, "gridcells", config_file=path, environ={})
+    with pytest.raises(ConfigError, match=r"unknown table \[sterio\]"):
+        egomotion_config(config_file=path, environ={})
+    path.write_text("[sterio]\nransac_iterations = 3\n")   # no [egomotion], no estimator: a whole file, mistyped
+    with pytest.raises(ConfigError, match=r"unknown table \[sterio\]"):
+        egomotion_config(config_file=path, environ={})
+
+
 
 def test_the_choice_lists_name_what_the_cores_hold():
     from services.common import stages
