@@ -275,8 +275,8 @@ class FoxgloveService(Service):
         check_available()
 
         self.ros = RosMessages()
-        self.msgdefs = {msgtype: self.ros.msgdef(msgtype).encode()
-                        for msgtype in {*TOPICS.values(), POSE_WITH_COVARIANCE, PATH}}
+        fleet_types = (POSE_WITH_COVARIANCE, PATH) if config.fleet else ()   # the fleet's channels' types
+        self.msgdefs = {msgtype: self.ros.msgdef(msgtype).encode() for msgtype in {*TOPICS.values(), *fleet_types}}
         self.extra_topics: dict[str, str] = {}   # topics beyond TOPICS: the fleet's, as robots join
         self.fleet = FleetPaths(self.ros, 1.0 / config.map_rate_hz) if config.fleet else None
         self.history = RunHistory(config.history)

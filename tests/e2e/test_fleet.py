@@ -67,8 +67,10 @@ def test_two_robots_meet_and_the_fleet_map_survives_a_kill(tmp_path):
     # first places, near b's last frames, so how many of b's follow the join depends on the pace.
     online = fleet["online_error_after_join_m"]
     assert "a" in online and all(error["max"] < 0.3 for error in online.values())
-    # a robot joining mid-run: placed soon after it first comes to a place the other saw
-    assert fleet["frames_to_join"]["b"] is not None and fleet["frames_to_join"]["b"] <= 20
+    # a robot joining mid-run: joined by closures soon after it first comes to a place the other saw
+    # (placed live a little later: by then the fleet map was killed and caught up, `placed_at`)
+    assert fleet["first_meeting"]["b"] is not None and fleet["joined_at"]["b"] - fleet["first_meeting"]["b"] <= 20
+    assert fleet["placed_at"]["b"] >= fleet["joined_at"]["b"]
     assert fleet["fleetmap_restarts"] == 1   # and it resumed from its journal: every input once, below
     # nothing fused twice: each closure, and each part of a robot's map, once in the journal
     closures = [(r["closure"]["robot"], r["closure"]["index"]) for r in journal_inputs(out) if "closure" in r]
