@@ -335,8 +335,11 @@ def test_fleet_members_exchange_places_and_only_they_may(fleet, certs):
         for role in ("observer", "source"):
             put(sessions[role], "c", "fleet/place", forged)
         time.sleep(4)   # more than a sync period: the loop closures would have taken it by now
-        assert statuses_of(operator, "a", "loopclosure")["fleet_places_learnt"] == b["fleet_places_sent"]
-        assert statuses_of(operator, "b", "loopclosure")["fleet_places_learnt"] == a["fleet_places_sent"]
+        # each learnt the other's places (read afresh: a robot may have stored more since), and nothing of c's
+        def learnt_exactly_the_others():
+            a, b = statuses_of(operator, "a", "loopclosure"), statuses_of(operator, "b", "loopclosure")
+            return a["fleet_places_learnt"] == b["fleet_places_sent"] and b["fleet_places_learnt"] == a["fleet_places_sent"]
+        wait_for(learnt_exactly_the_others, timeout=15, period=0.5)
     finally:
         for session in sessions.values():
             session.close()
