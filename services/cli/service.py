@@ -7,11 +7,9 @@ import importlib
 import logging
 import os
 
-from services.common.config import SERVICE_MODULES
+from services.common.config import SERVICE_MODULES as SERVICES   # name → adapter: add_arguments(parser), main(runtime, args)
 from services.common.runtime import add_runtime_flags, runtime_from_args
 from services.common.settings import CommandParser, add_flag, renamed_flags
-
-SERVICES = SERVICE_MODULES   # name → adapter module: add_arguments(parser), main(runtime, args) -> int
 
 
 def register(subparsers) -> None:
