@@ -17,13 +17,12 @@
 from __future__ import annotations
 
 import math
-import statistics
-import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from services.benchmarks.timing import median_ms as timed_medians
 from services.common.frames import Camera
 from services.common.settings import CommandParser
 from services.loopclosure.geometry import ClosureGeometry
@@ -158,16 +157,8 @@ def timing(geometry: ClosureGeometry, repeats: int) -> dict:
         left, right, current, camera = first.left, first.right, later.left, first.camera
 
     def median_ms(call) -> tuple[float, float]:
-        """Median wall-clock and thread-CPU milliseconds (on a shared machine the CPU time is
-        the better estimate of an idle one: everything timed runs in this thread)."""
-        call()
-        wall, cpu = [], []
-        for _ in range(repeats):
-            started, started_cpu = time.perf_counter(), time.thread_time()
-            call()
-            wall.append(time.perf_counter() - started)
-            cpu.append(time.thread_time() - started_cpu)
-        return 1e3 * statistics.median(wall), 1e3 * statistics.median(cpu)
+        call()   # a warm-up call, not timed
+        return timed_medians(call, repeats)
 
     stereo = geometry.keyframe(left, right, camera)
     mono = geometry.keyframe(left, None, camera)

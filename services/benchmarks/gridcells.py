@@ -26,6 +26,7 @@ import time
 import numpy as np
 import scipy.fft
 
+from services.benchmarks.timing import median_ms
 from services.common.settings import CommandParser
 from services.gridcells.calibration import CalibrationGrid, LagInverter, check_flows, check_velocities, flow_table, lag_components
 from services.gridcells.decoders import DECODERS, decode_paper_bruteforce, decode_subpixel
@@ -48,19 +49,6 @@ TIMING_GRID = CalibrationGrid(directions=4, axis_span_deg=0, drives=(0.05, 0.2, 
 
 SPEED = 0.5  # metres per frame, at 30° from world x; the auto scale maps it to 3 neurons per frame
 HEADING = math.radians(30)
-
-
-def median_ms(call, repeats: int) -> tuple[float, float]:
-    """Medians of wall-clock and of this thread's CPU time, ms. On a busy machine the CPU
-    time stays close to what the wall clock shows on an idle one (the timed code is
-    single-threaded, except the LAPACK SVDs of the brute-force search)."""
-    wall, cpu = [], []
-    for _ in range(repeats):
-        started, started_cpu = time.perf_counter(), time.thread_time()
-        call()
-        wall.append(time.perf_counter() - started)
-        cpu.append(time.thread_time() - started_cpu)
-    return 1000 * statistics.median(wall), 1000 * statistics.median(cpu)
 
 
 class FullSheetNetwork:
