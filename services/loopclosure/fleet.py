@@ -17,18 +17,27 @@ says nothing across robots (their frame numbers are unrelated): another robot's 
 numbered OTHER_BASE below every frame of this robot's, so none is recent and the offsets of a run
 still agree.
 
-What a frame did is its votes (`FleetVote`, journaled by the service); `replay` rebuilds the
-rules and the numbering of the confirmed closures from them, so a restarted service confirms
-exactly what the uninterrupted one did. Places already known are not added again (`add`): a
+Another robot's place can arrive after this robot saw it too: two robots driving side by side
+each pass a place before the other's place of it arrives. So each frame is matched a second
+time, `late_frames` frames after it was seen, against the places that arrived in between only
+(its *late* votes, under a consistency rule of their own per robot, in the frames' order): a
+place arriving up to that many frames late still closes the loop, and no frame is matched
+twice against one place. A restarted service has not kept the features of the frames before
+the restart (the journal holds none), so those get no late match.
+
+What a frame did is its votes (`FleetVote`, journaled by the service: the frame's own and the
+late votes of the frame `late_frames` before it); `replay` rebuilds the rules and the numbering
+of the confirmed closures from them, so a restarted service confirms exactly what the
+uninterrupted one did. Places already known are not added again (`add`): a
 place re-sent after a restart or a partition is learnt once.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
-import numpy as np
-
+from services.common.frames import Camera
 from services.common.settings import check, setting
 from services.loopclosure.bow import InvertedIndex, _best, bag_of
 from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule
@@ -47,6 +56,9 @@ class FleetParams:
     window: int = setting(10, ge=1, help="Consecutive frames of the inter-robot consistency rule.")
     min_votes: int = setting(7, ge=1, help="Consistent votes for one robot's places within the window to confirm a closure.")
     tolerance: int = setting(6, ge=0, help="Frames by which the votes' frame offsets may disagree.")
+    late_frames: int = setting(20, ge=0, help="Frames after which a frame is matched again, against the places of other "
+                               "robots that arrived since (0: never): places of a robot driving beside this one arrive "
+                               "after this one saw them.")
 
     def check(self) -> None:
         check(self)
@@ -80,6 +92,26 @@ class FleetConfirmed:
     measurement: Measurement
 
 
+@dataclass(frozen=True)
+class FleetObservation:
+    """What one frame did: its own votes (one per robot at most), the late votes of the frames
+    matched again now (frame, votes), and the closures confirmed."""
+
+    votes: tuple[FleetVote, ...]
+    late: tuple[tuple[int, tuple[FleetVote, ...]], ...]
+    confirmed: tuple[FleetConfirmed, ...]
+
+
+@dataclass(frozen=True)
+class _Seen:
+    """A frame waiting for its late match: its features, and how many places were known then."""
+
+    frame: int
+    features: Features
+    camera: Camera | None
+    known: int
+
+
 class FleetRecognition:
     """Other robots' places, and the rules that confirm closures to them."""
 
@@ -95,8 +127,10 @@ class FleetRecognition:
         self.places: list[tuple[str, int, int]] = []   # local index → (robot, place, frame)
         self._local: dict[tuple[str, int], int] = {}   # (robot, place) → local index
         self._known: dict[str, set[int]] = {}           # robot → its place ids learnt
-        self.rules: dict[str, ConsistencyRule] = {}
-        self._measured: dict[str, dict[int, FleetVote]] = {}   # per robot: the rule's window's votes, by frame
+        # per (robot, late): the rule, and the votes of its window by frame
+        self.rules: dict[tuple[str, bool], ConsistencyRule] = {}
+        self._measured: dict[tuple[str, bool], dict[int, FleetVote]] = {}
+        self._seen: deque[_Seen] = deque()              # frames waiting for their late match, oldest first
         self.confirmed: list[FleetConfirmed] = []
 
     def __len__(self) -> int:
@@ -128,47 +162,64 @@ class FleetRecognition:
         self._known.setdefault(robot, set()).add(place)
         return True
 
-    def observe(self, seq: int, features: Features, left: np.ndarray | None, camera=None
-                ) -> tuple[tuple[FleetVote, ...], tuple[FleetConfirmed, ...]]:
-        """Match one frame (its features; ``left`` and ``camera`` for the measurement) against
-        the other robots' places: its votes, one per robot at most, and the closures confirmed."""
+    def observe(self, seq: int, features: Features, camera: Camera | None = None) -> FleetObservation:
+        """Match one frame (its features; ``camera`` for the measurement, default the places')
+        against the other robots' places, and match again the frames seen `late_frames` before
+        it against the places that arrived since."""
+        votes = self._votes(seq, features, camera, 0, late=False)
+        confirmed = list(self._confirm(seq, votes, late=False))
+        late = []
+        if self.params.late_frames:
+            self._seen.append(_Seen(seq, features, camera, len(self.places)))
+            while self._seen and self._seen[0].frame <= seq - self.params.late_frames:
+                seen = self._seen.popleft()
+                late_votes = self._votes(seen.frame, seen.features, seen.camera, seen.known, late=True)
+                if late_votes:
+                    late.append((seen.frame, late_votes))
+                confirmed.extend(self._confirm(seen.frame, late_votes, late=True))
+        return FleetObservation(votes, tuple(late), tuple(confirmed))
+
+    def replay(self, seq: int, votes: tuple[FleetVote, ...], late: tuple[tuple[int, tuple[FleetVote, ...]], ...] = ()
+               ) -> tuple[FleetConfirmed, ...]:
+        """What a journaled frame confirmed, from its votes and late votes (as `observe` did)."""
+        confirmed = list(self._confirm(seq, votes, late=False))
+        for frame, late_votes in late:
+            confirmed.extend(self._confirm(frame, late_votes, late=True))
+        return tuple(confirmed)
+
+    def _votes(self, seq: int, features: Features, camera, first: int, late: bool) -> tuple[FleetVote, ...]:
+        """The frame's votes for the places from local index ``first`` on, one per robot at most."""
+        if len(self.places) <= first or not len(features):
+            return ()
+        scores = self.index.scores(bag_of(self.vocabulary, features.descriptors), len(self.places))
+        verified: dict[str, list[tuple[int, int, int]]] = {}   # robot → (inliers, place, frame)
+        for local in (_best(scores[first:], self.params.candidates) + first).tolist():
+            keyframe = self.keyframes.get(local)
+            inliers = 0 if keyframe is None else self.geometry.verify(keyframe, features)
+            if inliers >= self.params.min_inliers:
+                robot, place, frame = self.places[local]
+                verified.setdefault(robot, []).append((inliers, place, frame))
         votes = []
-        if self.places and len(features):
-            bag = bag_of(self.vocabulary, features.descriptors)
-            scores = self.index.scores(bag, len(self.places))
-            verified: dict[str, list[tuple[int, int, int]]] = {}   # robot → (inliers, place, frame)
-            for local in _best(scores, self.params.candidates).tolist():
-                keyframe = self.keyframes.get(local)
-                inliers = 0 if keyframe is None else self.geometry.verify(keyframe, features)
-                if inliers >= self.params.min_inliers:
-                    robot, place, frame = self.places[local]
-                    verified.setdefault(robot, []).append((inliers, place, frame))
-            for robot in sorted(verified):
-                ranked = sorted(verified[robot], key=lambda v: (-v[0], v[1]))
-                rule = self._rule(robot)
-                chosen = rule.choose(seq, [(place, frame - OTHER_BASE) for _, place, frame in ranked])
-                if chosen is None:
-                    continue
-                place, shifted = chosen
-                keyframe = self.keyframes.get(self._local[(robot, place)])
-                votes.append(FleetVote(robot, place, shifted + OTHER_BASE,
-                                       self._measure(keyframe, left, camera, features)))
-        return tuple(votes), self._confirm(seq, tuple(votes))
+        for robot in sorted(verified):
+            ranked = sorted(verified[robot], key=lambda v: (-v[0], v[1]))
+            chosen = self._rule(robot, late).choose(seq, [(place, frame - OTHER_BASE) for _, place, frame in ranked])
+            if chosen is None:
+                continue
+            place, shifted = chosen
+            keyframe = self.keyframes.get(self._local[(robot, place)])
+            votes.append(FleetVote(robot, place, shifted + OTHER_BASE, self._measure(keyframe, camera, features)))
+        return tuple(votes)
 
-    def replay(self, seq: int, votes: tuple[FleetVote, ...]) -> tuple[FleetConfirmed, ...]:
-        """What a journaled frame confirmed, from its votes."""
-        return self._confirm(seq, votes)
+    def _rule(self, robot: str, late: bool) -> ConsistencyRule:
+        if (robot, late) not in self.rules:
+            self.rules[(robot, late)] = ConsistencyRule(self.params.consistency())
+            self._measured[(robot, late)] = {}
+        return self.rules[(robot, late)]
 
-    def _rule(self, robot: str) -> ConsistencyRule:
-        if robot not in self.rules:
-            self.rules[robot] = ConsistencyRule(self.params.consistency())
-            self._measured[robot] = {}
-        return self.rules[robot]
-
-    def _confirm(self, seq: int, votes: tuple[FleetVote, ...]) -> tuple[FleetConfirmed, ...]:
+    def _confirm(self, seq: int, votes: tuple[FleetVote, ...], late: bool) -> tuple[FleetConfirmed, ...]:
         confirmed = []
         for vote in votes:
-            rule, measured = self._rule(vote.robot), self._measured[vote.robot]
+            rule, measured = self._rule(vote.robot, late), self._measured[(vote.robot, late)]
             for frame in [f for f in measured if f <= seq - self.params.window]:
                 del measured[frame]
             measured[seq] = vote
@@ -182,10 +233,10 @@ class FleetRecognition:
                 self.confirmed.append(confirmed[-1])
         return tuple(confirmed)
 
-    def _measure(self, keyframe: Keyframe | None, left, camera, features: Features) -> Measurement:
+    def _measure(self, keyframe: Keyframe | None, camera, features: Features) -> Measurement:
         if keyframe is None or (camera or keyframe.camera) is None:
             return Measurement("none", error="no keyframe or camera")
-        pose = self.geometry.relative_pose(keyframe, left, camera, features)
+        pose = self.geometry.relative_pose(keyframe, None, camera, features)
         if not pose.ok:
             return Measurement("none", inliers=pose.inliers, error=pose.reason)
         return Measurement(pose.method, pose.forward, pose.left, pose.yaw,

@@ -107,7 +107,8 @@ class FleetMember:
 
     def on_frame(self, header, frame: int, observed, camera_bytes: int) -> list[dict]:
         """After the detector saw a frame: publish a new place, match the frame against the
-        other robots' places, publish what it confirms; the frame's votes, for the journal."""
+        other robots' places (and an earlier frame against the places that arrived since),
+        publish what it confirms; the votes, for the frame's journal record."""
         self.counters["camera_bytes"] += camera_bytes
         match = observed.match
         if match.is_new:
@@ -116,19 +117,23 @@ class FleetMember:
             if keyframe is not None:
                 self._send_places(header, [PlaceRecord(place=match.template_id, frame=frame, keyframe=keyframe.to_bytes())])
         view = observed.view
-        if len(self.recognition):
-            votes, confirmed = self.recognition.observe(frame, view.features, view.left, view.camera)
-        else:
-            votes, confirmed = (), ()
-        if confirmed:
-            self._send_closures(header, confirmed)
+        seen = self.recognition.observe(frame, view.features, view.camera)
+        if seen.confirmed:
+            self._send_closures(header, seen.confirmed)
         self.maybe_sync()
-        return [vote_record(vote) for vote in votes]
+        record = {}
+        if seen.votes:
+            record["fleet"] = [vote_record(vote) for vote in seen.votes]
+        if seen.late:
+            record["fleet_late"] = [[late_frame, [vote_record(vote) for vote in votes]] for late_frame, votes in seen.late]
+        return record
 
     def replay(self, frame: int, record: dict) -> None:
         if record.get("new"):
             self.own_place(record["template"], frame)
-        self.recognition.replay(frame, tuple(vote_of(v) for v in record.get("fleet", ())))
+        self.recognition.replay(frame, tuple(vote_of(v) for v in record.get("fleet", ())),
+                                tuple((int(late_frame), tuple(vote_of(v) for v in votes))
+                                      for late_frame, votes in record.get("fleet_late", ())))
 
     def _send_places(self, header, places: list[PlaceRecord]) -> None:
         message = FleetPlaces(header=header.model_copy(update={"robot": self.robot}), places=places,

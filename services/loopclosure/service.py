@@ -216,7 +216,7 @@ class LoopClosureService(Service):
         right = image_from_msg(message.right) if message.right is not None else None
         with self.lock:
             observed = self.detector.observe(frame, left, right, camera_of(message, left))
-            fleet_votes = None if self.fleet is None else self.fleet.on_frame(
+            fleet_record = {} if self.fleet is None else self.fleet.on_frame(
                 message.header, frame, observed, len(message.left.data) + (len(message.right.data) if message.right else 0))
         for closure in observed.closures:
             m = closure.measurement
@@ -230,7 +230,7 @@ class LoopClosureService(Service):
             self.journal.append({"frame": frame, "template": match.template_id, "new": match.is_new,
                                  "distance": match.distance, "angle": match.relative_angle,
                                  "matched_frame": match.matched_frame, "shift": match.shift, "view": observed.journal_view,
-                                 "vote": _vote_record(observed.vote), **({"fleet": fleet_votes} if fleet_votes else {})})
+                                 "vote": _vote_record(observed.vote), **fleet_record})
         self._remember(frame, observed.match, observed.closures)
 
     def _publish(self, header, match: ViewMatch, closures: tuple[Confirmed, ...]) -> None:
