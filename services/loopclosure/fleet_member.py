@@ -2,7 +2,8 @@
 services/loopclosure/fleet.py.
 
 - Its own new places go out on `<robot>/fleet/place` (PlaceRecord: the keyframe's bytes, never an
-  image), and its queryable `<robot>/fleet/places?from=N` answers the places from id N on.
+  image) while another robot listens, and its queryable `<robot>/fleet/places?from=N` answers
+  the places from id N on (so a robot that comes later is sent each place once).
 - The other robots' places come in on `*/fleet/place`; each is learnt once (FleetRecognition.add),
   journaled beside the service's own journal (`<store>.fleet.log`, its keyframes in
   `<store>.fleet.keyframes`), so a restart learns them again from disk.
@@ -86,7 +87,7 @@ class FleetMember:
         self.own: dict[int, int] = {}       # this robot's places: id → frame
         self.lock = service.lock            # the queryables read the keyframes the main thread writes
         self.next_sync = 0.0
-        self.counters = {"fleet_places_sent": 0, "fleet_bytes_sent": 0, "fleet_places_learnt": 0,
+        self.counters = {"fleet_places_sent": 0, "fleet_places_resent": 0, "fleet_bytes_sent": 0, "fleet_places_learnt": 0,
                          "fleet_places_refused": 0, "fleet_bytes_received": 0, "fleet_closures": 0, "camera_bytes": 0}
 
     # --- wiring -----------------------------------------------------------------------------------
@@ -136,6 +137,8 @@ class FleetMember:
                                       for late_frame, votes in record.get("fleet_late", ())))
 
     def _send_places(self, header, places: list[PlaceRecord]) -> None:
+        if not self.service.publisher("fleet/place").matching_status.matching:
+            return   # no other robot listens yet: one that comes asks for the places it lacks (fleet/places)
         message = FleetPlaces(header=header.model_copy(update={"robot": self.robot}), places=places,
                               place_count=len(self.own))
         self.service.publish("fleet/place", message)
@@ -225,7 +228,9 @@ class FleetMember:
                 places.append(PlaceRecord(place=place, frame=frame, keyframe=keyframe.to_bytes()))
             count = len(self.own)
         message = FleetPlaces(header=self.service.header(self.service.last_seq, 0.0), places=places, place_count=count)
-        self.counters["fleet_bytes_sent"] += len(codec.encode(message)) if places else 0
+        if places:
+            self.counters["fleet_places_resent"] += len(places)
+            self.counters["fleet_bytes_sent"] += len(codec.encode(message))
         return message
 
     def closures_reply(self, parameter) -> FleetClosures:

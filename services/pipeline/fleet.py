@@ -285,7 +285,8 @@ def _summary(folder: Path) -> dict:
         return {}
     stages = metrics.get("stages", {})
     loop = metrics.get("services", {}).get("loopclosure", {}).get("extra", {})
-    places, sent, camera = loop.get("fleet_places_sent", 0), loop.get("fleet_bytes_sent", 0), loop.get("camera_bytes", 0)
+    places = loop.get("fleet_places_sent", 0) + loop.get("fleet_places_resent", 0)   # live, and asked for
+    sent, camera = loop.get("fleet_bytes_sent", 0), loop.get("camera_bytes", 0)
     return {"frames": metrics.get("summary", {}).get("frames_sent"),
             "map_ate_se2_m": stages.get("map", {}).get("ate_se2", {}).get("rmse"),
             "map_closures": metrics.get("summary", {}).get("map_closures"),
