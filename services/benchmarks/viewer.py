@@ -17,6 +17,7 @@ and of this thread's CPU time (the machine may be shared: the load average is pr
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -36,21 +37,12 @@ from schemas import CameraFrame, EgoMotion, GridActivity, GridPose, Header, MapP
 from services.common import codec, topics
 from services.common.convert import image_to_msg, planar_pose
 from services.common.runtime import RuntimeConfig, open_session
+from services.benchmarks.timing import median_ms
 from services.common.settings import CommandParser
 from services.viewer.config import ViewerConfig
 from services.viewer.service import ViewerService
 from services.common.images import encode_camera_jpeg
 from services.viewer.state import Cursor, encode_lattice_png
-
-
-def median_us(call, repeats: int) -> tuple[float, float]:
-    wall, cpu = [], []
-    for i in range(repeats):
-        started, started_cpu = time.perf_counter(), time.thread_time()
-        call(i)
-        wall.append(time.perf_counter() - started)
-        cpu.append(time.thread_time() - started_cpu)
-    return statistics.median(wall) * 1e6, statistics.median(cpu) * 1e6
 
 
 def header(seq: int) -> Header:
@@ -96,8 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---:|---:|---:|")
     for name, (model, handler, messages) in frames.items():
         payloads = [codec.encode(m) for m in messages]
-        wall, cpu = median_us(lambda i: handler(codec.decode(payloads[i % len(payloads)], model)), n)
-        print(f"| {name} | {wall:.0f} | {cpu:.0f} | {1e6 / wall:,.0f} |")
+        cycle = itertools.cycle(payloads)
+        wall, cpu = median_ms(lambda: handler(codec.decode(next(cycle), model)), n)
+        print(f"| {name} | {1000 * wall:.0f} | {1000 * cpu:.0f} | {1000 / wall:,.0f} |")
 
     state = viewer.viewer_state
     for i in range(args.frames):
@@ -117,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---:|---:|---:|")
     seq = n + args.frames
 
-    def tail(i):
+    def tail():
         nonlocal seq
         seq += 1
         now = time.monotonic()
@@ -130,16 +123,16 @@ def main(argv: list[str] | None = None) -> int:
     viewer.view(cursor)
     rows = {
         "one frame's tail": tail,
-        "everything (a browser connects)": lambda i: viewer.view(Cursor()),
+        "everything (a browser connects)": lambda: viewer.view(Cursor()),
     }
     for name, build in rows.items():
-        view_ms = median_us(build, min(n, 100))[0] / 1000
-        sample = build(0)
+        view_ms = median_ms(build, min(n, 100))[0]
+        sample = build()
         body = json.dumps(sample, separators=(",", ":"))
-        json_ms = median_us(lambda i: json.dumps(sample, separators=(",", ":")), min(n, 50))[0] / 1000
+        json_ms = median_ms(lambda: json.dumps(sample, separators=(",", ":")), min(n, 50))[0]
         print(f"| {name} | {view_ms:.2f} | {json_ms:.2f} | {len(body):,} |")
     experience_map = viewer.view()["map"]
-    map_ms = median_us(lambda i: json.dumps(experience_map, separators=(",", ":")), min(n, 50))[0] / 1000
+    map_ms = median_ms(lambda: json.dumps(experience_map, separators=(",", ":")), min(n, 50))[0]
     map_bytes = len(json.dumps(experience_map, separators=(",", ":")))
     print(f"| of which the map (encoded once per map change for all browsers) | | {map_ms:.2f} | {map_bytes:,} |")
 
@@ -148,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     print("\n| image endpoint | encoding, ms | bytes |")
     print("|---|---:|---:|")
     for name, encode, image in (("camera.jpg 320×240", encode_camera_jpeg, camera), ("lattice.png 64×64", encode_lattice_png, lattice)):
-        print(f"| {name} | {median_us(lambda i: encode(image), 50)[0] / 1000:.2f} | {len(encode(image)):,} |")
+        print(f"| {name} | {median_ms(lambda: encode(image), 50)[0]:.2f} | {len(encode(image)):,} |")
     viewer.close_http()
     print(f"\nload average after: {os.getloadavg()[0]:.2f}")
     return 0
