@@ -14,12 +14,14 @@ $(BIN)/gridslam: pyproject.toml
 demo: $(BIN)/gridslam
 	$(BIN)/gridslam demo
 
-# The linter first ([tool.ruff] in pyproject.toml), then the suite. One BLAS thread per process:
-# tests and services share two cores, and idle BLAS threads spinning on busy cores slow small
-# matrix work a hundredfold.
+# The linter first ([tool.ruff] in pyproject.toml), then the suite: two test processes side by side
+# (pytest-xdist, a module's tests in one of them), then the tests marked `serial`, which need the
+# machine to themselves, one at a time. One BLAS thread per process: tests and services share two
+# cores, and idle BLAS threads spinning on busy cores slow small matrix work a hundredfold.
 test: $(BIN)/gridslam
 	$(BIN)/ruff check .
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m serial
 
 bench: $(BIN)/gridslam
 	$(BIN)/gridslam bench

@@ -21,6 +21,8 @@ from services.pipeline.fleet import evaluate_fleet
 from services.pipeline.runner import RunConfig
 from tests.netutil import REPO, endpoint, free_port, ip, start, stop, veth_namespaces, wait_for
 
+pytestmark = pytest.mark.serial   # which robot meets which place when: the robots' pace is part of what it tests
+
 
 def fleetmap_pid(out: Path) -> int | None:
     """The fleet map process this test's run started (its journal is in `out`)."""

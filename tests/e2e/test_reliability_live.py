@@ -14,9 +14,12 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from services.common import codec, topics
 from tests.netutil import GRIDSLAM, REPO, client_session, endpoint, free_port, start_router, stop, wait_for
+
+pytestmark = pytest.mark.serial   # a live camera's rate against the pipeline's
 
 CAMERA_FPS = 200.0
 STREAM_S = 6.0

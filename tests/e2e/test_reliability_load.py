@@ -5,8 +5,12 @@ handled: a queue growing anywhere would hold about a megabyte per frame."""
 
 from __future__ import annotations
 
+import pytest
+
 from services.benchmarks.load import growth, measure_load
 from tests.netutil import endpoint, free_port
+
+pytestmark = pytest.mark.serial   # memory and rates at full load
 
 FRAMES = 120
 

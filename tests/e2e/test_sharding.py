@@ -18,6 +18,8 @@ from services.common.health import live_services, statuses
 from tests.e2e.test_faults import GRIDSLAM, frames_in_map, journal, service_pid
 from tests.netutil import REPO, client_session, endpoint, free_port, start, start_router, stop, wait_for
 
+pytestmark = pytest.mark.serial   # bit-identical runs while instances come and go: a busy machine's timing is what it tests
+
 # NuBot's last 115 stereo pairs at 640×480 (its 23° turn at frame 153 and the return to the start).
 START, FRAMES = 90, 115
 TRAJECTORIES = ("egomotion.tum", "gridcells.tum", "map.tum")

@@ -23,6 +23,8 @@ from services.source.spec import open_source
 from tests.messages import header
 from tests.netutil import client_session, endpoint, free_port, router_session, wait_for
 
+pytestmark = pytest.mark.serial   # throughput and latency of the source's window
+
 FRAMES = 3
 
 
