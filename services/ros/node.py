@@ -125,13 +125,15 @@ class Ros2Service(Service):
             message.increment_covariance))
 
     def on_map_pose(self, message: MapPose) -> None:
-        self._put_ros(self.projection.map_pose(message.header.seq, self._stamp(message),
-                                            (message.pose.position.x, message.pose.position.y, message.heading),
-                                            message.experience_id))
+        placement = message.placement
+        self._put_ros(self.projection.map_pose(
+            message.header.seq, self._stamp(message), (message.pose.position.x, message.pose.position.y, message.heading),
+            message.experience_id, None if placement is None else
+            (placement.experience, (placement.dx, placement.dy, placement.dheading))))
         self._put_ros(self.projection.due(time.monotonic()))
 
     def on_map_update(self, message: MapUpdate) -> None:
-        self.projection.map_update(message.header.seq, self._stamp(message),
+        self.projection.map_update(self._stamp(message),
                                    [(e.id, e.x, e.y, e.heading) for e in message.experiences], map_items(message)[1])
 
     def on_fleet_pose(self, message: FleetPose) -> None:

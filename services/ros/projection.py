@@ -12,10 +12,11 @@ where gridslam messages become ROS 2 messages); the adapter decodes and publishe
   (the map stage publishes none of its own).
 - `path` (nav_msgs/Path, frame `map`): every frame placed on its experience as the map now has
   it (the experience map's corrected trajectory), at most every `path_period_s` and at the end.
-  A frame's offset from its experience is taken against the experience as the map had it at that
-  frame: map/update and map/pose are different keys, whose samples Zenoh may deliver in either
-  order, so a recent frame's offset is taken again when an update of its own frame or an earlier
-  one comes after it.
+  A frame's experience and offset are the map's own record of it (`MapPose.placement`), so the
+  path does not depend on whether an update of the map reached the node before or after the
+  frame's pose (different keys, which Zenoh may deliver in either order); a map pose without one
+  (a localisation on a saved map, which does not move it) is placed against the experience as
+  last heard.
 - `experience_map` (visualization_msgs/MarkerArray), at most every `map_period_s` and at the end.
 - `grid_activity` (sensor_msgs/Image, mono8) of the lattice.
 """
@@ -63,7 +64,6 @@ class Projection:
     grid_poses: dict[int, tuple[float, float, float]] = field(default_factory=dict)   # seq → odom pose
     experiences: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     frames: list[tuple[int, int, tuple[float, float, float]]] = field(default_factory=list)  # (stamp, experience, offset)
-    recent_frames: dict[int, tuple[int, tuple[float, float, float]]] = field(default_factory=dict)  # seq → (index in frames, map pose)
     map_state: MapState = field(default_factory=MapState)
     path_pending: int | None = None   # stamp of a change not sent yet
     map_pending: int | None = None
@@ -102,8 +102,9 @@ class Projection:
         return TF, self.ros.transforms(stamp, [(MAP_FRAME, ODOM_FRAME, (correction[0], correction[1], 0.0),
                                                 yaw_quaternion(correction[2]))])
 
-    def map_pose(self, seq: int, stamp: int, pose, experience: int) -> list[tuple[str, bytes]]:
-        """`/tf` map → odom and `pose` of one map pose; the frame joins the path."""
+    def map_pose(self, seq: int, stamp: int, pose, experience: int, placement=None) -> list[tuple[str, bytes]]:
+        """`/tf` map → odom and `pose` of one map pose; the frame joins the path, placed by
+        `placement` (experience, offset: the map's record of the frame) where it has one."""
         pose = tuple(float(v) for v in pose)
         if seq <= self.last_map_seq and seq >= self.last_seq - RECENT_FRAMES:   # sent again: already placed
             return []
@@ -119,26 +120,22 @@ class Projection:
         messages.append((POSE, self.ros.pose_with_covariance(stamp, MAP_FRAME, (pose[0], pose[1], 0.0),
                                                              yaw_quaternion(pose[2]),
                                                              planar_covariance_6x6(self.covariance))))
-        anchor = self.experiences.setdefault(experience, pose)   # (not announced yet: the frame stays where it was put)
-        self.frames.append((stamp, experience, between(anchor, pose)))
-        self.recent_frames[seq] = (len(self.frames) - 1, pose)
-        while len(self.recent_frames) > RECENT_FRAMES:
-            del self.recent_frames[next(iter(self.recent_frames))]
+        if placement is not None:
+            experience, offset = placement[0], tuple(float(v) for v in placement[1])
+            # an experience not announced yet: where this frame puts it, until an update places it
+            self.experiences.setdefault(experience, compose(pose, between(offset, (0.0, 0.0, 0.0))))
+        else:
+            offset = between(self.experiences.setdefault(experience, pose), pose)
+        self.frames.append((stamp, experience, offset))
         self.path_pending = stamp
         return messages
 
-    def map_update(self, seq: int, stamp: int, experiences, links) -> None:
-        """Experiences created or moved at frame `seq` `[(id, x, y, heading)]`, links created
-        `[(source, target, kind)]` (common.observe's link kinds)."""
+    def map_update(self, stamp: int, experiences, links) -> None:
+        """Experiences created or moved `[(id, x, y, heading)]`, links created `[(source, target,
+        kind)]` (common.observe's link kinds)."""
         for experience, x, y, heading in experiences:
             self.experiences[experience] = (float(x), float(y), float(heading))
-        moved = {experience for experience, *_ in experiences}
-        for frame_seq, (index, pose) in self.recent_frames.items():   # frames placed before this update reached the node
-            stamp_of, experience, _ = self.frames[index]
-            if frame_seq >= seq and experience in moved:
-                self.frames[index] = (stamp_of, experience, between(self.experiences[experience], pose))
-        if self.map_state.apply([(e, x, y) for e, x, y, _ in experiences],
-                                links):
+        if self.map_state.apply([(e, x, y) for e, x, y, _ in experiences], links):
             self.map_pending = stamp
             self.path_pending = stamp
 
@@ -167,7 +164,6 @@ class Projection:
         self.waiting.clear()
         self.last_map_seq = -1
         self.frames.clear()
-        self.recent_frames.clear()
         self.experiences.clear()
         self.map_state = MapState()
         self.path_pending = self.map_pending = None

@@ -1,5 +1,6 @@
 """The live ROS 2 node's pure core (services/ros/projection.py): the path it rebuilds from the
-map's experiences, whichever order map/pose and map/update reach it in."""
+map's experiences and each frame's placement on them (MapPose.placement), whichever order
+map/pose and map/update reach it in."""
 
 from __future__ import annotations
 
@@ -25,22 +26,25 @@ EXPERIENCE_AT = {0: (0.0, 0.0, 0.0), 1: (2.0, 0.2, 0.1)}
 FINAL = {0: (0.1, -0.1, 0.02), 1: (1.8, 0.1, 0.08)}
 
 
+def placement(seq: int) -> tuple[int, tuple[float, float, float]]:
+    """Where the map puts frame `seq`: its experience, and the offset from the experience as the
+    map had it at that frame (frame 4 placed after the move)."""
+    pose, experience = MAP_POSES[seq]
+    return experience, between(FINAL[0] if seq == 4 else EXPERIENCE_AT[experience], pose)
+
+
 def expected_path():
-    path = []
-    for seq, (pose, experience) in MAP_POSES.items():
-        anchor = FINAL[0] if seq == 4 else EXPERIENCE_AT[experience]   # frame 4 placed after the move
-        path.append(compose(FINAL[experience], between(anchor, pose)))
-    return np.array(path)
+    return np.array([compose(FINAL[placement(seq)[0]], placement(seq)[1]) for seq in MAP_POSES])
 
 
-def run(events) -> np.ndarray:
+def run(events, placed: bool = True) -> np.ndarray:
     live = projection.Projection(RosMessages("jazzy"))
     for kind, seq in events:
         if kind == "pose":
             pose, experience = MAP_POSES[seq]
-            live.map_pose(seq, seq * 10**8, pose, experience)
+            live.map_pose(seq, seq * 10**8, pose, experience, placement(seq) if placed else None)
         else:
-            live.map_update(seq, seq * 10**8, UPDATES[seq], [])
+            live.map_update(seq * 10**8, UPDATES[seq], [])
     return np.array([pose[1:] for pose in live.trajectory()])
 
 
@@ -68,3 +72,13 @@ def test_an_update_reaching_the_node_after_its_frames_pose_gives_the_same_path(l
 def test_every_update_after_every_pose_gives_the_same_path():
     events = [("pose", seq) for seq in MAP_POSES] + [("update", seq) for seq in UPDATES]
     assert run(events) == pytest.approx(expected_path())
+
+
+def test_a_pose_without_a_placement_is_placed_against_its_experience_as_last_heard():
+    # (a localisation on a saved map, which moves no experience): in the order expmap publishes
+    events = [e for seq in MAP_POSES for e in ([("update", seq)] if seq in UPDATES else []) + [("pose", seq)]]
+    assert run(events, placed=False) == pytest.approx(expected_path())
+    # heard before its experience was announced, a frame is where its pose put it
+    lone = projection.Projection(RosMessages("jazzy"))
+    lone.map_pose(0, 0, (1.0, 2.0, 0.3), 7)
+    assert lone.trajectory() == [pytest.approx((0, 1.0, 2.0, 0.3))]
