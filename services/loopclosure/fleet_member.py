@@ -2,8 +2,7 @@
 services/loopclosure/fleet.py.
 
 - Its own new places go out on `<robot>/fleet/place` (PlaceRecord: the keyframe's bytes, never an
-  image) while another robot listens, and its queryable `<robot>/fleet/places?from=N` answers
-  the places from id N on (so a robot that comes later is sent each place once).
+  image), and its queryable `<robot>/fleet/places?from=N` answers the places from id N on.
 - The other robots' places come in on `*/fleet/place`; each is learnt once (FleetRecognition.add),
   journaled beside the service's own journal (`<store>.fleet.log`, its keyframes in
   `<store>.fleet.keyframes`), so a restart learns them again from disk.
@@ -137,8 +136,6 @@ class FleetMember:
                                       for late_frame, votes in record.get("fleet_late", ())))
 
     def _send_places(self, header, places: list[PlaceRecord]) -> None:
-        if not self.service.publisher("fleet/place").matching_status.matching:
-            return   # no other robot listens yet: one that comes asks for the places it lacks (fleet/places)
         message = FleetPlaces(header=header.model_copy(update={"robot": self.robot}), places=places,
                               place_count=len(self.own))
         self.service.publish("fleet/place", message)

@@ -62,10 +62,12 @@ class FleetCursor:
 class FleetView:
     """The newest state of the fleet map, fed message by message (numbers in)."""
 
-    def __init__(self, max_points: int = 4000):
+    def __init__(self, max_points: int = 4000, resent_frames: int = 64):
+        """``resent_frames``: how far back a frame sent again may be (a service's kept outputs)."""
         if max_points < 2:
             raise ValueError(f"fleet view: max_points {max_points} < 2")
         self.max_points = max_points
+        self.resent_frames = resent_frames
         self.robots: dict[str, FleetRobotView] = {}
         self.links: dict[tuple[str, int], tuple[int, str, int, str]] = {}   # (robot, index) → (exp, matched robot, exp, fate)
         self.map_revision = 0
@@ -87,8 +89,13 @@ class FleetView:
 
     # ----------------------------------------------------------------- inputs
     def on_pose(self, robot: str, seq: int, x: float, y: float, heading: float, experience_id: int, joined: bool) -> None:
-        """`fleet/<robot>/pose`: the robot's pose in the fleet frame (joined) or in its own part's frame."""
+        """`fleet/<robot>/pose`: the robot's pose in the fleet frame (joined) or in its own part's
+        frame. A pose of a recent frame already drawn is one sent again (the robot's source re-sent
+        its frames in flight, and its map its map/pose): dropped, not a new run's first."""
         view = self._robot(robot)
+        last = view.track.last_seq
+        if last is not None and last - self.resent_frames <= seq <= last:
+            return
         self._set_joined(view, joined)
         view.track.add(seq, x, y, heading)
         view.experience_id = experience_id

@@ -17,6 +17,8 @@ from services.source.service import frame_message
 from services.source.spec import open_source
 from tests.netutil import client_session, endpoint, free_port, router_session, wait_for
 
+pytestmark = pytest.mark.serial   # which instance takes which block depends on their pace
+
 FIRST, COUNT, BLOCK = 140, 16, 4   # NuBot frames 140..155: four blocks
 
 

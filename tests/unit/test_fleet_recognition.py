@@ -1,23 +1,14 @@
 """Inter-robot place recognition (services/loopclosure/fleet.py) on real rendered views of the
 synthetic world: another robot's places arriving after this robot passed them still close the
-loop, `late_frames` frames after it saw them, and a journal's replay confirms the same closures;
-a robot's place goes out live only while another robot listens."""
+loop, `late_frames` frames after it saw them, and a journal's replay confirms the same closures."""
 
 from __future__ import annotations
 
-import threading
-from types import SimpleNamespace
-
 import pytest
-
-from schemas import Header, PlaceRecord, Time
-from services.common import codec
 
 from services.loopclosure.detector import MemoryKeyframes
 from services.loopclosure.fleet import FleetParams, FleetRecognition, vote_of, vote_record
-from services.loopclosure.fleet_member import FleetMember
 from services.loopclosure.geometry import ClosureGeometry
-from services.loopclosure.service import LoopClosureConfig
 from services.loopclosure.vocabulary import default_vocabulary
 from services.source.synthetic import SyntheticWorld, WorldConfig
 
@@ -89,36 +80,3 @@ def test_late_frames_is_checked():
     with pytest.raises(Exception, match="late_frames"):
         FleetParams(late_frames=-1).check()
 
-
-class Listened:
-    """The loopclosure service as FleetMember sees it, with a publisher another robot listens to
-    or not (a unit test of the member around Zenoh's matching status)."""
-
-    robot = "a"
-
-    def __init__(self, listened: bool):
-        self.listened = listened
-        self.detector = SimpleNamespace(mode="auto", geometry=GEOMETRY)
-        self.lock = threading.RLock()
-        self.published = []
-
-    def publisher(self, topic):
-        return SimpleNamespace(matching_status=SimpleNamespace(matching=self.listened))
-
-    def publish(self, topic, message):
-        self.published.append((topic, message))
-
-
-def test_a_place_goes_out_live_only_while_another_robot_listens(views):
-    _, places, _ = views
-    header = Header(seq=0, stamp=Time.from_seconds(0.0), frame_id="camera", robot="a")
-    record = [PlaceRecord(place=0, frame=10, keyframe=places[0][2].to_bytes())]
-    for listened in (False, True):
-        service = Listened(listened)
-        member = FleetMember(service, LoopClosureConfig(fleet=True))
-        member.own_place(0, 10)
-        member._send_places(header, record)
-        assert [topic for topic, _ in service.published] == (["fleet/place"] if listened else [])
-        assert member.counters["fleet_places_sent"] == int(listened)
-        assert member.counters["fleet_bytes_sent"] == sum(len(codec.encode(m)) for _, m in service.published)
-        assert (member.counters["fleet_bytes_sent"] > 7000) == listened

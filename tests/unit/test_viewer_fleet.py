@@ -46,6 +46,19 @@ def test_each_robot_has_its_track_and_a_robot_not_joined_is_marked_and_restarted
     assert as_json(fleet)["robots"]["b"]["track"]["points"] == [] and not as_json(fleet)["robots"]["b"]["joined"]
 
 
+def test_a_pose_sent_again_is_dropped_and_a_new_run_starts_the_track_afresh():
+    fleet = FleetView(max_points=100, resent_frames=64)
+    for seq in range(100, 110):
+        fleet.on_pose("a", seq, seq * 1.0, 0.0, 0.0, 0, True)
+    epoch = as_json(fleet)["robots"]["a"]["track"]["epoch"]
+    fleet.on_pose("a", 105, 999.0, 0.0, 0.0, 0, True)   # its source re-sent its frames in flight
+    track = as_json(fleet)["robots"]["a"]["track"]
+    assert len(track["points"]) == 10 and track["epoch"] == epoch and track["pose"][0] == 109.0
+    fleet.on_pose("a", 0, 7.0, 0.0, 0.0, 0, True)       # far back: a new run of the robot
+    track = as_json(fleet)["robots"]["a"]["track"]
+    assert track["points"] == [[7.0, 0.0]] and track["epoch"] != epoch
+
+
 def test_tails_send_only_new_points_per_robot():
     fleet = FleetView(max_points=100)
     cursor = FleetCursor()
