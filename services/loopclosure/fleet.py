@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 from services.common.frames import Camera
 from services.common.settings import check, setting
-from services.loopclosure.bow import InvertedIndex, _best, bag_of
+from services.loopclosure.bow import BagVector, InvertedIndex, _best, bag_of
 from services.loopclosure.consistency import ConsistencyParams, ConsistencyRule
 from services.loopclosure.detector import Measurement
 from services.loopclosure.geometry import ClosureGeometry, Features, Keyframe
@@ -104,10 +104,12 @@ class FleetObservation:
 
 @dataclass(frozen=True)
 class _Seen:
-    """A frame waiting for its late match: its features, and how many places were known then."""
+    """A frame waiting for its late match: its features and their bag of words (None: not made
+    yet), and how many places were known then."""
 
     frame: int
     features: Features
+    bag: BagVector | None
     camera: Camera | None
     known: int
 
@@ -166,14 +168,15 @@ class FleetRecognition:
         """Match one frame (its features; ``camera`` for the measurement, default the places')
         against the other robots' places, and match again the frames seen `late_frames` before
         it against the places that arrived since."""
-        votes = self._votes(seq, features, camera, 0, late=False)
+        bag = self._bag(features) if self.places else None
+        votes = self._votes(seq, features, bag, camera, 0, late=False)
         confirmed = list(self._confirm(seq, votes, late=False))
         late = []
         if self.params.late_frames:
-            self._seen.append(_Seen(seq, features, camera, len(self.places)))
+            self._seen.append(_Seen(seq, features, bag, camera, len(self.places)))
             while self._seen and self._seen[0].frame <= seq - self.params.late_frames:
                 seen = self._seen.popleft()
-                late_votes = self._votes(seen.frame, seen.features, seen.camera, seen.known, late=True)
+                late_votes = self._votes(seen.frame, seen.features, seen.bag, seen.camera, seen.known, late=True)
                 if late_votes:
                     late.append((seen.frame, late_votes))
                 confirmed.extend(self._confirm(seen.frame, late_votes, late=True))
@@ -187,11 +190,16 @@ class FleetRecognition:
             confirmed.extend(self._confirm(frame, late_votes, late=True))
         return tuple(confirmed)
 
-    def _votes(self, seq: int, features: Features, camera, first: int, late: bool) -> tuple[FleetVote, ...]:
-        """The frame's votes for the places from local index ``first`` on, one per robot at most."""
+    def _bag(self, features: Features) -> BagVector | None:
+        return bag_of(self.vocabulary, features.descriptors) if len(features) else None
+
+    def _votes(self, seq: int, features: Features, bag: BagVector | None, camera, first: int, late: bool
+               ) -> tuple[FleetVote, ...]:
+        """The frame's votes for the places from local index ``first`` on, one per robot at most
+        (``bag``: the features' bag of words, made here when None)."""
         if len(self.places) <= first or not len(features):
             return ()
-        scores = self.index.scores(bag_of(self.vocabulary, features.descriptors), len(self.places))
+        scores = self.index.scores(bag if bag is not None else self._bag(features), len(self.places))
         verified: dict[str, list[tuple[int, int, int]]] = {}   # robot → (inliers, place, frame)
         for local in (_best(scores[first:], self.params.candidates) + first).tolist():
             keyframe = self.keyframes.get(local)

@@ -105,7 +105,7 @@ class FleetMember:
     def own_place(self, place: int, frame: int) -> None:
         self.own[place] = frame
 
-    def on_frame(self, header, frame: int, observed, camera_bytes: int) -> list[dict]:
+    def on_frame(self, header, frame: int, observed, camera_bytes: int) -> dict:
         """After the detector saw a frame: publish a new place, match the frame against the
         other robots' places (and an earlier frame against the places that arrived since),
         publish what it confirms; the votes, for the frame's journal record."""
