@@ -1,13 +1,14 @@
 # Quick start (README): `make demo` installs into .venv and runs the demo;
 # `make test` installs into .venv, runs the linter (ruff) and the whole test suite (.ci/run calls it).
+# Both install the versions constraints.txt pins, with which the golden results were taken.
 VENV ?= .venv
 PYTHON ?= python3
 BIN = $(VENV)/bin
 
-$(BIN)/gridslam: pyproject.toml
+$(BIN)/gridslam: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[plots,ros,foxglove,test]'
+	$(BIN)/python -m pip install -q -c constraints.txt -e '.[plots,ros,foxglove,test]'
 	touch $@
 
 .PHONY: demo test bench wheels docker-test
@@ -30,7 +31,7 @@ bench: $(BIN)/gridslam
 # built without network: GRIDSLAM_WHEELS=true docker-compose build (docs/deploy.md). PYTHON
 # must be the image's Python version (3.11) on its architecture.
 wheels:
-	$(PYTHON) -m pip wheel -q --wheel-dir deploy/wheels . 'setuptools>=70.1'
+	$(PYTHON) -m pip wheel -q -c constraints.txt --wheel-dir deploy/wheels . 'setuptools>=70.1'
 	rm -f deploy/wheels/gridslam-*.whl
 
 # The image, the compose stack and the swarm stack on a real Docker engine (tests/e2e/test_docker.py;

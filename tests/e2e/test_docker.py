@@ -140,7 +140,7 @@ def test_build_context_leaves_out_git_tests_docs_and_keys(base_image, tmp_path):
     shutil.copy(REPO / ".dockerignore", tmp_path / ".dockerignore")
     files = [".git/HEAD", "tests/test_x.py", "docs/deploy.md", "results/latest/metrics.json", ".venv/bin/python",
              "deploy/certs/ca.key", "deploy/certs/router.pem", "deploy/tls/node.key", "services/x.key",
-             "pyproject.toml", "README.md", "schemas/__init__.py", "services/__init__.py", "deploy/router.json5",
+             "pyproject.toml", "constraints.txt", "README.md", "schemas/__init__.py", "services/__init__.py", "deploy/router.json5",
              "deploy/tls/client-mtls.json5", "deploy/wheels/README.md", "services/__pycache__/x.cpython-311.pyc"]
     for name in files:
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
@@ -153,7 +153,7 @@ def test_build_context_leaves_out_git_tests_docs_and_keys(base_image, tmp_path):
     finally:
         docker("rmi", "-f", tag, check=False)
     arrived = {path.removeprefix("/context/") for path in listing}
-    assert arrived == {"pyproject.toml", "README.md", "schemas/__init__.py", "services/__init__.py",
+    assert arrived == {"pyproject.toml", "constraints.txt", "README.md", "schemas/__init__.py", "services/__init__.py",
                        "deploy/router.json5", "deploy/tls/client-mtls.json5", "deploy/wheels/README.md"}
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import sys
+from importlib import metadata
 from pathlib import Path
 
 from services.evaluation import metrics
@@ -36,6 +37,13 @@ COMMANDS = {
 NUBOT_LOOP = "180-204:0-40"
 NUBOT_REVISITS = range(180, 205)
 LIBVISO2 = Path("nubot_scene1") / "libviso2_egomotion.csv"
+# The libraries whose release changes the figures (rendering, features, matching, the solvers):
+# a golden file records their versions (constraints.txt pins them for make and CI).
+COMPUTING = ("opencv-python-headless", "numpy", "scipy", "gtsam", "chroma-hnswlib")
+
+
+def versions() -> dict[str, str]:
+    return {name: metadata.version(name) for name in COMPUTING}
 
 
 def figures(name: str, folder: Path, shared_data: Path | None = None) -> dict:
@@ -83,7 +91,11 @@ def differences(golden: dict, found: dict) -> list[str]:
 def check(name: str, folder: Path, shared_data: Path | None = None) -> dict:
     """Assert the run in `folder` reproduces the golden figures of `name`; its figures."""
     found = figures(name, folder, shared_data)
-    problems = differences(load(name)["figures"], found)
+    golden = load(name)
+    problems = differences(golden["figures"], found)
+    recorded, installed = golden.get("versions", {}), versions()
+    if problems and recorded != installed:
+        problems.append(f"recorded with {recorded}, this run has {installed}: install with -c constraints.txt")
     assert not problems, f"{COMMANDS[name]} differs from tests/golden/{name}.json:\n" + "\n".join(problems)
     return found
 
@@ -105,7 +117,8 @@ def main(argv: list[str]) -> int:
     name, folder = argv[0], Path(argv[1])
     from tests.conftest import SHARED_DATA
 
-    golden = {"command": COMMANDS[name], "figures": figures(name, folder, SHARED_DATA if name == "nubot" else None)}
+    golden = {"command": COMMANDS[name], "figures": figures(name, folder, SHARED_DATA if name == "nubot" else None),
+              "versions": versions()}
     path = FOLDER / f"{name}.json"
     path.write_text(json.dumps(golden, indent=2, sort_keys=True) + "\n")
     print(f"wrote {path}")
