@@ -19,6 +19,15 @@ from __future__ import annotations
 import collections
 from typing import Any
 
+REPLAY_FRAMES = 64       # frames whose outputs are kept to answer a re-sent input again
+
+
+def sent_again(last: int | None, seq: int) -> bool:
+    """Whether an output of frame `seq`, on a stream whose newest frame so far is `last`, is one
+    sent again (a service answering a re-sent input frame with its kept outputs, at most
+    REPLAY_FRAMES back) rather than a new one or a new run's first."""
+    return last is not None and last - REPLAY_FRAMES <= seq <= last
+
 
 class OutputMemory:
     """The outputs (topic, message) published for each of the last `frames` input frames."""

@@ -30,7 +30,7 @@ from schemas import Header, ServiceStatus, Time
 from schemas.base import Message
 from services.common import codec, topics
 from services.common.errors import ConfigError, GridslamError, PersistenceError
-from services.common.recovery import OutputMemory, RouterLink
+from services.common.recovery import REPLAY_FRAMES, OutputMemory, RouterLink
 from services.common.runtime import RuntimeConfig, ServiceStopped, open_session
 from services.common.sequencing import Delivery, Sequencer, SequencerParams
 from services.common.settings import setting
@@ -38,7 +38,6 @@ from services.common.settings import setting
 log = logging.getLogger(__name__)
 
 INBOX_SIZE = 16          # samples waiting for the main thread; beyond this, publishers are pushed back
-REPLAY_FRAMES = 64       # frames whose outputs are kept to answer a re-sent input again
 STATUS_PERIOD_S = 1.0    # how often the status message is published
 LOG_EVERY = 1000         # after the first 10, one log line per this many decode errors, gaps, rejections
 # Samples lost on the way (with a router that died, or with a lease that expired) are recovered
@@ -240,6 +239,12 @@ class Service:
         assert self.session is not None, "queryable() belongs in setup()"
         key = topics.key(self.robot, topic)
         self._entities.append(self.session.declare_queryable(key, lambda query: self._reply(query, key, answer, parameters)))
+
+    def watch(self, key: str, on_change: Callable[[zenoh.Sample], None]) -> None:
+        """Call `on_change` (on a Zenoh thread) for every liveliness token under `key`: those alive
+        now, and each that comes (SampleKind.PUT) or goes (SampleKind.DELETE) later."""
+        assert self.session is not None, "watch() belongs in setup()"
+        self._entities.append(self.session.liveliness().declare_subscriber(key, on_change, history=True))
 
     def publish(self, topic: str, message: Message) -> None:
         """Publish a pipeline message on `topic` (congestion control BLOCK: offline replay loses nothing).

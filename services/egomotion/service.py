@@ -87,8 +87,7 @@ class EgomotionService(Service):
 
     def setup(self) -> None:
         self.subscribe("camera/frame", self.on_frame, on_stale=self.on_frame_again)
-        self._entities.append(self.session.liveliness().declare_subscriber(
-            topics.shard_key(self.robot, self.name, "*", "*"), self._on_member, history=True))
+        self.watch(topics.shard_key(self.robot, self.name, "*", "*"), self._on_member)
 
     def _on_member(self, sample: zenoh.Sample) -> None:   # a Zenoh thread
         key = str(sample.key_expr)

@@ -33,7 +33,8 @@ from services.common.errors import ConfigError, DataError, PersistenceError
 from services.common.journal import SESSION, continue_session
 from services.common.layout import MapReuseParams, add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
-from services.common.service import REPLAY_FRAMES, Service
+from services.common.recovery import REPLAY_FRAMES
+from services.common.service import Service
 from services.common.settings import add_flag, config_fields, params_of
 from services.expmap.graph import ExperienceMap, FrameResult, MapParams, MapState
 from services.expmap.joiner import FrameJoiner

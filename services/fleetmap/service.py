@@ -31,6 +31,7 @@ from services.common.config import load_config
 from services.common.convert import heading_of, planar_pose
 from services.common.errors import ConfigError
 from services.common.geometry import between
+from services.common.recovery import sent_again
 from services.common.runtime import RuntimeConfig
 from services.common.service import Service
 from services.common.settings import config_fields, params_of
@@ -69,6 +70,7 @@ class _Robot:
         self.poses: dict[int, tuple[float, float, float]] = {}   # its experiences in its own map, as last published
         self.frames = FramePlacements(FRAMES_KEPT, sync_period, FRAMES_PATIENCE * sync_period)
         self.needs_snapshot = False
+        self.pose_seq: int | None = None   # the newest frame whose fleet pose went out
 
 
 class FleetMapService(Service):
@@ -178,7 +180,8 @@ class FleetMapService(Service):
             offset = (placement.dx, placement.dy, placement.dheading) if placement is not None else \
                 between(feed.poses[experience], pose)
             feed.frames.pose(message.header.seq, experience, offset, recorded=placement is not None)
-            if state is not None and experience < len(state.poses):
+            if state is not None and experience < len(state.poses) and not sent_again(feed.pose_seq, message.header.seq):
+                feed.pose_seq = message.header.seq   # a map/pose sent again (its expmap's kept outputs) is not published twice
                 x, y, heading = self.fleet.pose(robot, experience, offset)
                 self._send(topics.fleet_pose_topic(robot), FleetPose(
                     header=message.header.model_copy(update={"frame_id": "map"}), pose=planar_pose(x, y, heading),

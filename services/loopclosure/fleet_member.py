@@ -21,6 +21,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import zenoh
+
 from schemas import FleetClosureRecord, FleetClosures, FleetPlaces, PlaceRecord, PlanarIncrement
 from services.common import codec, topics
 from services.common.errors import ConfigError
@@ -84,9 +86,10 @@ class FleetMember:
                 self.recognition.add(record["robot"], int(record["place"]), int(record["frame"]), keyframe, store=False)
             keyframes.truncate(len(self.recognition))
         self.own: dict[int, int] = {}       # this robot's places: id → frame
+        self.listeners: set[str] = set()    # the other robots' loopclosures alive (their health tokens)
         self.lock = service.lock            # the queryables read the keyframes the main thread writes
         self.next_sync = 0.0
-        self.counters = {"fleet_places_sent": 0, "fleet_places_resent": 0, "fleet_bytes_sent": 0, "fleet_places_learnt": 0,
+        self.counters = {"fleet_places_sent": 0, "fleet_places_resent": 0, "fleet_places_unheard": 0, "fleet_bytes_sent": 0, "fleet_places_learnt": 0,
                          "fleet_places_refused": 0, "fleet_bytes_received": 0, "fleet_closures": 0, "camera_bytes": 0}
 
     # --- wiring -----------------------------------------------------------------------------------
@@ -95,6 +98,16 @@ class FleetMember:
         s.subscribe("fleet/place", self.on_place, robot="*", sparse=True, drop_stale=False)
         s.queryable("fleet/places", self.places_reply, parameters=True)
         s.queryable("fleet/closures", self.closures_reply, parameters=True)
+        s.watch(topics.health_key("*", "loopclosure", "*"), self._on_listener)
+
+    def _on_listener(self, sample) -> None:   # a Zenoh thread
+        key = str(sample.key_expr)
+        if topics.parse_health_key(key)[0] == self.robot:
+            return
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self.listeners.discard(key)
+        else:
+            self.listeners.add(key)
 
     def close(self) -> None:
         if self.journal is not None:
@@ -139,6 +152,9 @@ class FleetMember:
         message = FleetPlaces(header=header.model_copy(update={"robot": self.robot}), places=places,
                               place_count=len(self.own))
         self.service.publish("fleet/place", message)
+        if not self.listeners:   # Zenoh sends a sample to no one when nothing matches it
+            self.counters["fleet_places_unheard"] += len(places)
+            return
         self.counters["fleet_places_sent"] += len(places)
         self.counters["fleet_bytes_sent"] += len(codec.encode(message))
 

@@ -21,7 +21,8 @@ from services.common.errors import ConfigError
 from services.common.journal import SESSION, Journal, continue_session
 from services.common.layout import MapReuseParams, add_map_reuse_arguments, map_files, session_base
 from services.common.runtime import RuntimeConfig
-from services.common.service import REPLAY_FRAMES, Service
+from services.common.recovery import REPLAY_FRAMES
+from services.common.service import Service
 from services.common.settings import add_field_flag, config_fields, params_of
 from services.common.stages import CLOSURES
 from services.loopclosure.bow import BowParams

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from services.common.recovery import sent_again
 from services.common.settings import setting
 from services.viewer.state import Track, _r
 
@@ -62,12 +63,10 @@ class FleetCursor:
 class FleetView:
     """The newest state of the fleet map, fed message by message (numbers in)."""
 
-    def __init__(self, max_points: int = 4000, resent_frames: int = 64):
-        """``resent_frames``: how far back a frame sent again may be (a service's kept outputs)."""
+    def __init__(self, max_points: int = 4000):
         if max_points < 2:
             raise ValueError(f"fleet view: max_points {max_points} < 2")
         self.max_points = max_points
-        self.resent_frames = resent_frames
         self.robots: dict[str, FleetRobotView] = {}
         self.links: dict[tuple[str, int], tuple[int, str, int, str]] = {}   # (robot, index) → (exp, matched robot, exp, fate)
         self.map_revision = 0
@@ -93,8 +92,7 @@ class FleetView:
         frame. A pose of a recent frame already drawn is one sent again (the robot's source re-sent
         its frames in flight, and its map its map/pose): dropped, not a new run's first."""
         view = self._robot(robot)
-        last = view.track.last_seq
-        if last is not None and last - self.resent_frames <= seq <= last:
+        if sent_again(view.track.last_seq, seq):
             return
         self._set_joined(view, joined)
         view.track.add(seq, x, y, heading)

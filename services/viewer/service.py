@@ -35,7 +35,7 @@ from services.common.convert import image_from_msg, pose_to_matrix
 from services.common.errors import ConfigError
 from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig, is_loopback
-from services.common.service import REPLAY_FRAMES, Service
+from services.common.service import Service
 from services.common.settings import add_field_flag, add_flag
 from services.viewer.config import ViewerConfig
 from services.viewer.fleet import FleetCursor, FleetView, FleetViewParams
@@ -81,7 +81,7 @@ class ViewerService(Service):
         self._snapshot_wanted = True
         self._snapshot_sent = -SNAPSHOT_RETRY_S
         # --fleet: the fleet map's poses, updates and snapshot (fleet.py), in its key space `fleet`.
-        self.fleet = FleetView(config.max_points, REPLAY_FRAMES) if config.fleet else None
+        self.fleet = FleetView(config.max_points) if config.fleet else None
         self._fleet_snapshot_wanted = self.fleet is not None
         self._fleet_snapshot_sent = -SNAPSHOT_RETRY_S
 

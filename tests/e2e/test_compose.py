@@ -30,7 +30,7 @@ from services.cli.service import SERVICES
 from services.common import codec, topics
 from services.common.journal import read_records
 from services.common.runtime import RuntimeConfig, open_session
-from services.common.service import REPLAY_FRAMES
+from services.common.recovery import REPLAY_FRAMES
 from services.expmap.store import parse_records
 from tests.netutil import REPO, endpoint, free_port, port_open, start, stop, wait_for
 from tests.tlsutil import CLIENT_MTLS, client_runtime, make_certs, tls_endpoint

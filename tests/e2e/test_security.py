@@ -270,6 +270,11 @@ def statuses_of(operator: zenoh.Session, robot: str, service: str) -> dict[str, 
     return {**found[0].extra, "received": found[0].received} if found else {}
 
 
+def own_places(status: dict[str, float]) -> int:
+    """The places a robot's loopclosure made: sent live to a robot listening, or to no one yet."""
+    return status.get("fleet_places_sent", 0) + status.get("fleet_places_unheard", 0)
+
+
 @pytest.fixture(scope="module")
 def fleet(acl_router, certs, tmp_path_factory):
     """Robots a and b's real loop closures (--fleet) and a real fleet map, each with its own
@@ -318,7 +323,7 @@ def test_fleet_members_exchange_places_and_only_they_may(fleet, certs):
 
         def exchanged():   # every frame handled, and each robot learnt every place the other sent
             a, b = statuses_of(operator, "a", "loopclosure"), statuses_of(operator, "b", "loopclosure")
-            sent_a, sent_b = a.get("fleet_places_sent", 0), b.get("fleet_places_sent", 0)
+            sent_a, sent_b = own_places(a), own_places(b)
             return a.get("received", 0) >= 24 and b.get("received", 0) >= 24 and sent_a > 0 and sent_b > 0 and \
                 a.get("fleet_places_learnt") == sent_b and b.get("fleet_places_learnt") == sent_a and (a, b)
         a, b = wait_for(exchanged, timeout=120, period=1.0)
@@ -326,7 +331,7 @@ def test_fleet_members_exchange_places_and_only_they_may(fleet, certs):
         # The places queryable answers a reader with the right (the operator), not the observer.
         replies = [r.ok for r in operator.get(f"{topics.key('a', 'fleet/places')}?from=0", timeout=5) if r.ok]
         places = codec.decode(replies[0].payload.to_bytes(), FleetPlaces, str(replies[0].encoding))
-        assert len(places.places) == a["fleet_places_sent"]
+        assert len(places.places) == own_places(a)
         assert not [r for r in sessions["observer"].get(f"{topics.key('a', 'fleet/places')}?from=0", timeout=2) if r.ok]
 
         # A place put by a certificate without the fleet's rights (a real keyframe, robot c) reaches nobody.
@@ -338,7 +343,7 @@ def test_fleet_members_exchange_places_and_only_they_may(fleet, certs):
         # each learnt the other's places (read afresh: a robot may have stored more since), and nothing of c's
         def learnt_exactly_the_others():
             a, b = statuses_of(operator, "a", "loopclosure"), statuses_of(operator, "b", "loopclosure")
-            return a["fleet_places_learnt"] == b["fleet_places_sent"] and b["fleet_places_learnt"] == a["fleet_places_sent"]
+            return a["fleet_places_learnt"] == own_places(b) and b["fleet_places_learnt"] == own_places(a)
         wait_for(learnt_exactly_the_others, timeout=15, period=0.5)
     finally:
         for session in sessions.values():

@@ -47,7 +47,7 @@ def test_each_robot_has_its_track_and_a_robot_not_joined_is_marked_and_restarted
 
 
 def test_a_pose_sent_again_is_dropped_and_a_new_run_starts_the_track_afresh():
-    fleet = FleetView(max_points=100, resent_frames=64)
+    fleet = FleetView(max_points=100)
     for seq in range(100, 110):
         fleet.on_pose("a", seq, seq * 1.0, 0.0, 0.0, 0, True)
     epoch = as_json(fleet)["robots"]["a"]["track"]["epoch"]
