@@ -82,6 +82,9 @@ def test_two_robots_meet_and_the_fleet_map_survives_a_kill(tmp_path):
     for robot in ("a", "b"):
         assert (out / "fleet" / f"{robot}.tum").stat().st_size > 0
         assert (out / "fleet" / f"{robot}.groundtruth.tum").stat().st_size > 0
+        # what a robot sent the other (its places' keyframes, never images): some, and at most 5 % of its camera data
+        counters = json.loads((out / robot / "metrics.json").read_text())["services"]["loopclosure"]["extra"]
+        assert 0 < counters["fleet_bytes_sent"] <= 0.05 * counters["camera_bytes"], counters
 
 
 def places_of(folder: Path) -> set[int]:

@@ -408,9 +408,9 @@ def test_a_robots_fleet_pose_is_placed_by_its_maps_own_placement_of_the_frame(tm
     # The robot's map has since moved experience 1 to x = 1.3 (that map/update is still on its
     # way): its frame 5 is 0.2 m ahead of the experience, at x = 1.5 on the robot's map.
     placed = FramePlacement(frame=5, experience=1, dx=0.2, dy=0.0, dheading=0.0)
-    for placement in (placed, None):
+    for seq, placement in ((5, placed), (6, None)):
         sent.clear()
-        service.on_map_pose(MapPose(header=head(5), pose=planar_pose(1.5, 0.0, 0.0), heading=0.0, experience_id=1,
+        service.on_map_pose(MapPose(header=head(seq), pose=planar_pose(1.5, 0.0, 0.0), heading=0.0, experience_id=1,
                                     placement=placement))
         (pose,) = sent
         expected = 1.2 if placement is not None else 1.5   # without it: the stale experience pose
@@ -418,3 +418,7 @@ def test_a_robots_fleet_pose_is_placed_by_its_maps_own_placement_of_the_frame(tm
         if placement is not None:   # a closure of that frame is placed by it too, without asking map/frames
             never = lambda first, last: pytest.fail("map/frames asked for a frame its map/pose placed")  # noqa: E731
             assert service.feeds["a"].frames.find(5, never, now=0.0) == (1, (0.2, 0.0, 0.0))
+    # The same map/pose again (its expmap answering a re-sent frame with its kept outputs): no second fleet pose.
+    sent.clear()
+    service.on_map_pose(MapPose(header=head(6), pose=planar_pose(1.5, 0.0, 0.0), heading=0.0, experience_id=1))
+    assert sent == []
