@@ -21,8 +21,8 @@ demo: $(BIN)/gridslam
 # cores, and idle BLAS threads spinning on busy cores slow small matrix work a hundredfold.
 test: $(BIN)/gridslam
 	$(BIN)/ruff check .
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m serial
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15 -m "not serial"
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q --durations=10 -m serial
 
 bench: $(BIN)/gridslam
 	$(BIN)/gridslam bench

@@ -7,7 +7,8 @@ robot k starting at its `--robot-start` frame, once the first robot has done its
 `--robot-delay` frames; every robot's ground truth has the first robot's first frame as its
 origin, so all are in robot a's frame, the fleet frame. When every robot has finished, the fleet
 map is stopped and the fleet evaluated (`evaluate_fleet`): `fleet/<robot>.tum` (its frames placed
-on the final fleet map), `fleet/<robot>.groundtruth.tum`, and the `fleet` object of metrics.json.
+on the final fleet map), `fleet/<robot>.online.tum` (its fleet poses as published, from its join
+on), `fleet/<robot>.groundtruth.tum`, and the `fleet` object of metrics.json.
 """
 
 from __future__ import annotations
@@ -375,6 +376,8 @@ def evaluate_fleet(folder: Path, names: list[str], online: dict, delays: dict[st
         after = [(truths[robot][at_stamp[round(p[3], 6)]], p) for seq, p in sorted(online.get(robot, {}).items())
                  if p[4] and round(p[3], 6) in at_stamp and (joined_at is None or at_stamp[round(p[3], 6)] >= joined_at)]
         if after:
+            write_tum(folder / FLEET / f"{robot}.online.tum", Trajectory.from_planar(
+                [p[3] for _, p in after], *(np.array([p[i] for _, p in after]) for i in range(3))))
             errors = np.array([math.dist(t[:2], p[:2]) for t, p in after])
             online_error[robot] = {"frames": len(errors), "max": float(errors.max()),
                                    "rmse": float(np.sqrt(np.mean(errors ** 2)))}

@@ -63,7 +63,7 @@ SHARDED_SPARE_BLOCKS = 1
 # reason a restart does not cure (a full disk, a bad file): the run stops and quotes it.
 RESTARTS_WITHOUT_PROGRESS = 3
 TAIL_LINES = 20             # last lines of each child's output kept in memory
-FLEET_WAIT_S = 15.0         # a fleet member at its end: how long it waits for the fleet map to hold its whole map
+FLEET_WAIT_S = 60.0         # a fleet member at its end: how long it waits for the fleet map to hold its whole map
 LIVENESS_CHECK_S = 2.0      # while no frame completes, how often the stages' health tokens are checked
 
 
@@ -632,14 +632,16 @@ def _wait_for_services(supervisor: Supervisor, recorder: Recorder, stages: list[
 def _wait_for_fleet_map(session, robot: str, stop_event: threading.Event) -> None:
     """A fleet member at its last frame: until a live fleet map holds every experience of the
     robot's map (it takes a part it missed from the map's snapshot, which needs the robot's expmap
-    up), at most FLEET_WAIT_S; at once when no fleet map answers (the robot never waits for one
-    that is down)."""
+    up), at most FLEET_WAIT_S; at once when no fleet map is alive (the robot never waits for one
+    that is down). A fleet map that is alive but slow to answer (busy catching up) is waited for."""
     deadline = time.monotonic() + FLEET_WAIT_S
     while not stop_event.is_set() and time.monotonic() < deadline:
+        if not any(service == "fleetmap" for _, service, _ in health.live_services(session, topics.FLEET, timeout=1.0)):
+            return
         own = [s.extra.get("experiences") for s in health.statuses(session, robot, timeout=1.0) if s.service == "expmap"]
-        fleet = [s.extra.get(f"experiences_{robot}", 0) for s in health.statuses(session, topics.FLEET, timeout=1.0)
+        fleet = [s.extra.get(f"experiences_{robot}", 0) for s in health.statuses(session, topics.FLEET, timeout=2.0)
                  if s.service == "fleetmap"]
-        if not own or not fleet or max(fleet) >= own[0]:
+        if own and fleet and max(fleet) >= own[0]:
             return
         time.sleep(0.5)
     log.warning("the fleet map does not hold all of robot %s's map after %.0f s", robot, FLEET_WAIT_S)

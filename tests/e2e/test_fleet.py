@@ -1,5 +1,6 @@
 """A fleet from the real command line (docs/fleet.md): two robots that start at different places
-on the corridor world meet and end in one frame; the fleet map killed with SIGKILL mid-run and
+on the campus meet and end in one frame, the look-alike places between them refused; the fleet
+map killed with SIGKILL mid-run and
 restarted by the runner, catching up without fusing anything twice; two sites, each robot on a
 router of its own, cut apart for a while and joined again, losing no place."""
 
@@ -43,10 +44,14 @@ def journal_inputs(out: Path) -> list[dict]:
     return [r for r in read_records(path)[0][1:] if "checkpoint" not in r] if path.exists() else []
 
 
-def test_two_robots_meet_and_the_fleet_map_survives_a_kill(tmp_path):
+def test_two_robots_meet_on_the_campus_refuse_its_look_alikes_and_the_fleet_map_survives_a_kill(tmp_path):
+    """Robot a from the campus route's frame 960, b from 3120 (some 950 m of route further on),
+    300 frames each: b's frames 3160-3252 drive a's 960-1045 again (a true meeting, b joins there),
+    and a's 1177-1216 drive the copy of the corridor b passed at its 3201-3240 (the look-alikes, 37 m
+    from the places they copy: confirmed, and refused by the fleet map)."""
     out = tmp_path / "fleet"
-    run = start(["run", "--fleet", "--source", "synthetic:0", "--preset", "synthetic", "--egomotion", "passthrough",
-                 "--n-frames", "160", "--robot-start", "0", "--robot-start", "80", "--listen", endpoint(free_port()),
+    run = start(["run", "--fleet", "--source", "synthetic:0", "--preset", "campus", "--egomotion", "passthrough",
+                 "--n-frames", "300", "--robot-start", "960", "--robot-start", "3120", "--listen", endpoint(free_port()),
                  "--out", str(out)])
     try:
         # Once the fleet map has taken some of both robots' maps, kill it; the runner starts it again.
@@ -62,11 +67,11 @@ def test_two_robots_meet_and_the_fleet_map_survives_a_kill(tmp_path):
             stop(run)
     assert code == 0, stderr[-2000:]
     fleet = json.loads((out / "metrics.json").read_text())["fleet"]
-    assert fleet["joined_at"]["a"] == 0 and fleet["joined_at"]["b"] is not None
+    assert fleet["joined_at"]["a"] == 960 and fleet["joined_at"]["b"] is not None
     assert fleet["inter_robot_closures_accepted"] >= 20 and fleet["inter_robot_closures_accepted_false"] == 0
+    assert fleet["inter_robot_closures_rejected_false"] > 0   # the look-alikes were met, and refused
     assert fleet["ate_m"]["b"] < 0.1
-    # The poses published live after a robot joined: robot a's always; b joins when a comes to b's
-    # first places, near b's last frames, so how many of b's follow the join depends on the pace.
+    # The poses published live after a robot joined: robot a's always, b's from its first meeting on.
     online = fleet["online_error_after_join_m"]
     assert "a" in online and all(error["max"] < 0.3 for error in online.values())
     # a robot joining mid-run: joined by closures soon after it first comes to a place the other saw
@@ -82,6 +87,9 @@ def test_two_robots_meet_and_the_fleet_map_survives_a_kill(tmp_path):
     for robot in ("a", "b"):
         assert (out / "fleet" / f"{robot}.tum").stat().st_size > 0
         assert (out / "fleet" / f"{robot}.groundtruth.tum").stat().st_size > 0
+        if robot in online:   # the fleet poses as published from its join on, one row each
+            published = (out / "fleet" / f"{robot}.online.tum").read_text().splitlines()
+            assert len([row for row in published if not row.startswith("#")]) == online[robot]["frames"]
         # what a robot sent the other (its places' keyframes, never images): some, and at most 5 % of its camera data
         counters = json.loads((out / robot / "metrics.json").read_text())["services"]["loopclosure"]["extra"]
         assert 0 < counters["fleet_bytes_sent"] <= 0.05 * counters["camera_bytes"], counters
