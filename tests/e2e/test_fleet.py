@@ -1,7 +1,7 @@
 """A fleet from the real command line (docs/fleet.md): two robots that start at different places
 on the campus meet and end in one frame, the look-alike places between them refused; the fleet
-map killed with SIGKILL mid-run and
-restarted by the runner, catching up without fusing anything twice; two sites, each robot on a
+map and one robot's loopclosure killed with SIGKILL mid-run and restarted by the runners,
+catching up without losing a place or fusing anything twice; two sites, each robot on a
 router of its own, cut apart for a while and joined again, losing no place."""
 
 from __future__ import annotations
@@ -25,18 +25,23 @@ from tests.netutil import REPO, endpoint, free_port, ip, start, stop, veth_names
 pytestmark = pytest.mark.serial   # which robot meets which place when: the robots' pace is part of what it tests
 
 
-def fleetmap_pid(out: Path) -> int | None:
-    """The fleet map process this test's run started (its journal is in `out`)."""
-    store = str(out / "fleet" / "fleet_map.log")
+def pid_of(service: str, store: Path) -> int | None:
+    """The process of `service` this test's run started with its store at `store`."""
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             try:
                 command = (entry / "cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if b"fleetmap" in command and store.encode() in command:
+            if service.encode() in command and str(store).encode() in command:
                 return int(entry.name)
     return None
+
+
+def learnt_places(folder: Path) -> list[tuple[str, int]]:
+    """(robot, place) of every other robot's place a robot's loopclosure has learnt (its fleet journal)."""
+    path = folder / "view_templates.fleet.log"
+    return [(r["robot"], r["place"]) for r in read_records(path)[0][1:]] if path.exists() else []
 
 
 def journal_inputs(out: Path) -> list[dict]:
@@ -44,7 +49,7 @@ def journal_inputs(out: Path) -> list[dict]:
     return [r for r in read_records(path)[0][1:] if "checkpoint" not in r] if path.exists() else []
 
 
-def test_two_robots_meet_on_the_campus_refuse_its_look_alikes_and_the_fleet_map_survives_a_kill(tmp_path):
+def test_two_robots_meet_on_the_campus_refuse_its_look_alikes_and_survive_kills(tmp_path):
     """Robot a from the campus route's frame 960, b from 3120 (some 950 m of route further on),
     300 frames each: b's frames 3160-3252 drive a's 960-1045 again (a true meeting, b joins there),
     and a's 1177-1216 drive the copy of the corridor b passed at its 3201-3240 (the look-alikes, 37 m
@@ -57,7 +62,13 @@ def test_two_robots_meet_on_the_campus_refuse_its_look_alikes_and_the_fleet_map_
         # Once the fleet map has taken some of both robots' maps, kill it; the runner starts it again.
         wait_for(lambda: (out / "fleet" / "fleet_map.log").exists() and len(journal_inputs(out)) > 40
                  or run.poll() is not None, timeout=120, period=0.5)
-        pid = fleetmap_pid(out)
+        pid = pid_of("fleetmap", out / "fleet" / "fleet_map.log")
+        assert pid is not None and run.poll() is None
+        os.kill(pid, signal.SIGKILL)
+        # And robot b's loopclosure, once it has learnt some of a's places: b's run starts it again,
+        # and it learns what it lacks, from its journal and from a, each place once.
+        wait_for(lambda: len(learnt_places(out / "b")) >= 20 or run.poll() is not None, timeout=120, period=0.5)
+        pid = pid_of("loopclosure", out / "b" / "view_templates.log")
         assert pid is not None and run.poll() is None
         os.kill(pid, signal.SIGKILL)
         stdout, stderr = run.communicate(timeout=300)
@@ -79,6 +90,9 @@ def test_two_robots_meet_on_the_campus_refuse_its_look_alikes_and_the_fleet_map_
     assert fleet["first_meeting"]["b"] is not None and fleet["joined_at"]["b"] - fleet["first_meeting"]["b"] <= 20
     assert fleet["placed_at"]["b"] >= fleet["joined_at"]["b"]
     assert fleet["fleetmap_restarts"] == 1   # and it resumed from its journal: every input once, below
+    assert json.loads((out / "b" / "metrics.json").read_text())["services"]["loopclosure"]["restarts"] == 1
+    learnt = learnt_places(out / "b")   # every place of a's up to its last, each once
+    assert len(learnt) == len(set(learnt)) and {p for _, p in learnt} == set(range(len(learnt)))
     # nothing fused twice: each closure, and each part of a robot's map, once in the journal
     closures = [(r["closure"]["robot"], r["closure"]["index"]) for r in journal_inputs(out) if "closure" in r]
     assert len(closures) == len(set(closures)) == fleet["inter_robot_closures_confirmed"]
@@ -169,7 +183,7 @@ def test_two_sites_cut_apart_and_joined_again_lose_no_place_and_fuse_nothing_twi
     # No place lost: each robot learnt, once, every place the other had stored when the sites were joined
     # again (those stored while they were apart included), and nothing is missing before its last.
     for robot, other in (("a", "b"), ("b", "a")):
-        learnt = [(r["robot"], r["place"]) for r in read_records(tmp_path / robot / "view_templates.fleet.log")[0][1:]]
+        learnt = learnt_places(tmp_path / robot)
         places = {p for _, p in learnt}
         assert len(learnt) == len(places) and places == set(range(len(places)))
         assert stored[other] and stored[other] <= places
