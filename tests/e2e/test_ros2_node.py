@@ -153,9 +153,14 @@ def test_kitti_clip_published_as_ros2_images_gives_the_folders_mono_odometry(rou
         images = client.publisher("/kitti/image", "sensor_msgs/msg/Image")
         info = client.publisher("/kitti/camera_info", "sensor_msgs/msg/CameraInfo")
         T = images.session_mgr.store.types
-        # The source's subscription in the graph first: what is published before it is not heard.
-        wait_for(lambda: any("%kitti%image" in str(r.ok.key_expr) for r in session.liveliness().get(
-            "@ros2_lv/0/*/*/*/MS/**", timeout=1.0) if r.ok is not None), timeout=120)
+        # The source's subscriptions in the graph first, the image's and the CameraInfo's: what is
+        # published before them is not heard (an image before its CameraInfo is given up).
+        def subscribed() -> bool:
+            keys = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/*/*/*/MS/**", timeout=1.0)
+                    if r.ok is not None]
+            return all(any(topic in key for key in keys) for topic in ("%kitti%image", "%kitti%camera_info"))
+
+        wait_for(subscribed, timeout=120)
         camera = frames.camera
         for index, frame in enumerate(frames):
             sec, nanosec = divmod(int(round(frame.stamp * 1e9)), 1_000_000_000)
