@@ -194,8 +194,9 @@ def test_two_sites_cut_apart_and_joined_again_lose_no_place_and_fuse_nothing_twi
         assert len(experiences) == len(read_log(tmp_path / robot / "experience_map.log").rebuild())
     closures = [(r["closure"]["robot"], r["closure"]["index"]) for r in inputs if "closure" in r]
     assert len(closures) == len(set(closures)) > 0
-    votes = sum(1 for robot in ("a", "b") for r in read_records(tmp_path / robot / "view_templates.log")[0][1:]
-                if r.get("fleet"))
+    # each closure confirmed by votes its robot journaled: a frame's own, or its late match's (`fleet_late`)
+    votes = sum(len(r.get("fleet", ())) + sum(len(late) for _, late in r.get("fleet_late", ()))
+                for robot in ("a", "b") for r in read_records(tmp_path / robot / "view_templates.log")[0][1:])
     assert votes >= len(closures)
     fleet = evaluate_fleet(tmp_path, ["a", "b"], {}, {"a": 0, "b": 0})
     assert fleet["joined_at"]["b"] is not None and fleet["inter_robot_closures_accepted_false"] == 0
