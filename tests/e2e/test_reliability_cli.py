@@ -146,7 +146,7 @@ def gridslam(args: list[str]) -> subprocess.CompletedProcess:
     return subprocess.run(GRIDSLAM + args, cwd=REPO, capture_output=True, text=True, timeout=60)
 
 
-def in_process(args: list[str], timeout: float = 60.0) -> tuple[int | None, str]:
+def in_process(args: list[str], timeout: float = 30.0) -> tuple[int | None, str]:
     """(exit code, stderr) of `gridslam ARGS` run by main() here; exit code None if it hangs
     (a service that took a bad setting would wait for its router) or exits through SystemExit."""
     outcome: list = [None, ""]
