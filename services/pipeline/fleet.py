@@ -17,6 +17,7 @@ import argparse
 import json
 import logging
 import math
+import signal
 import string
 import threading
 import time
@@ -39,6 +40,7 @@ from services.evaluation.revisits import TRUE_CLOSURE_M, same_place
 from services.evaluation.trajectory import Trajectory, read_tum, write_tum
 from services.expmap.export import read_log
 from services.fleetmap.store import read_fleet_log
+from services.pipeline.fleet_member import PARKED
 from services.pipeline.runner import (STARTUP_TIMEOUT_S, RunConfig, RunError, Serving, Supervisor, check_port_free,
                                       clear_previous_run, wait_port_open)
 from services.ros.foxglove import check_available as check_foxglove_available
@@ -202,16 +204,20 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
                 supervisor.start(name, observer_args(config, name, router, names[0]))
             for name in observers:
                 (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
-            pending = list(plan)
+            pending, released = list(plan), set()
+
+            def finished(robot: str) -> bool:   # its frames done: parked, or its run over
+                member = supervisor.children[f"robot-{robot}"]
+                return member.announced == PARKED or member.process.poll() is not None
+
             while pending or any(supervisor.exited(f"robot-{r}") is None for r in names if f"robot-{r}" in supervisor.children):
                 for robot, start, delay in list(pending):
-                    if delay == 0 or recorder.frames_done(names[0]) >= delay or \
-                            supervisor.exited(f"robot-{names[0]}") is not None:
+                    if delay == 0 or recorder.frames_done(names[0]) >= delay or finished(names[0]):
                         (folder / robot).mkdir(parents=True, exist_ok=True)
                         member = robot_config(config, robot, start, origin, router)
                         (folder / robot / "member.json").write_text(member.model_dump_json())
-                        supervisor.start(f"robot-{robot}", [str(folder / robot / "member.json"), str(folder / robot)],
-                                         module="services.pipeline.fleet_member")
+                        supervisor.start(f"robot-{robot}", [str(folder / robot / "member.json"), str(folder / robot),
+                                                            "--park"], module="services.pipeline.fleet_member")
                         (announce or log.info)(f"robot {robot}: frames from {start}" +
                                                (f", after robot {names[0]}'s first {delay}" if delay else ""))
                         pending.remove((robot, start, delay))
@@ -221,6 +227,10 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
                     if code not in (None, 0):
                         raise RunError(f"robot {robot}'s run failed (code {code}): {supervisor.log_tail(name, 2)} "
                                        f"(log: {supervisor.children[name].log_path})")
+                if not pending and all(finished(r) for r in names):   # the parked robots end their runs
+                    for robot in sorted(set(names) - released):
+                        supervisor.children[f"robot-{robot}"].process.send_signal(signal.SIGTERM)
+                        released.add(robot)
                 if supervisor.exited("fleetmap") is not None:
                     supervisor.restart("fleetmap")
                 if progress is not None:
@@ -252,8 +262,8 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
 def _wait_for_address(supervisor: Supervisor, name: str) -> str:
     """The address a server child printed (`gridslam viewer: URL`); RunError when it exits first."""
     child = supervisor.children[name]
-    _wait_for(lambda: child.address is not None, supervisor, name)
-    return child.address
+    _wait_for(lambda: child.announced is not None, supervisor, name)
+    return child.announced
 
 
 def _wait_for(predicate, supervisor: Supervisor, name: str) -> None:

@@ -112,7 +112,8 @@ class Child:
     restarts: int = 0
     seen: bool = False                # its health token was seen since its last start
     exits_without_progress: int = 0   # exits since a frame last completed
-    address: str | None = None        # where it serves, as it printed it (`gridslam viewer: http://...`)
+    announced: str | None = None      # what it printed on its `gridslam <name>: ...` line: where a server serves
+                                      # (`gridslam viewer: http://...`), that a fleet member is parked
     tail: collections.deque = field(default_factory=lambda: collections.deque(maxlen=TAIL_LINES))
     readers: list[threading.Thread] = field(default_factory=list)
 
@@ -159,8 +160,8 @@ class Supervisor:
             announcement = f"gridslam {child.name.partition('-')[0]}: ".encode()
             for line in stream:
                 child.tail.append(line.decode(errors="replace").rstrip())
-                if line.startswith(announcement):   # a service saying where it serves (the viewer, Foxglove)
-                    child.address = line[len(announcement):].decode(errors="replace").strip()
+                if line.startswith(announcement):   # a server saying where it serves, a fleet member that it is parked
+                    child.announced = line[len(announcement):].decode(errors="replace").strip()
                 if log_file is None:
                     continue
                 try:
@@ -435,8 +436,8 @@ class Serving:
 
     @property
     def addresses(self) -> dict[str, str]:
-        return {name: self.supervisor.children[name].address for name in SERVERS
-                if name in self.names and self.supervisor.children[name].address}
+        return {name: self.supervisor.children[name].announced for name in SERVERS
+                if name in self.names and self.supervisor.children[name].announced}
 
     def wait(self, stop_event: threading.Event | None = None) -> None:
         """Until Ctrl-C (SIGINT), SIGTERM, `stop_event`, or every server has exited; then stop them."""
@@ -469,7 +470,7 @@ class RunResult:
 
 
 def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop_event: threading.Event | None = None,
-                 overwrite: bool = False, announce=None, serve: bool = False) -> RunResult:
+                 overwrite: bool = False, announce=None, serve: bool = False, park=None) -> RunResult:
     """Run the whole stack on `config.source`, write the results folder, return its metrics.
 
     `progress(done, total)` is called about five times a second; `stop_event` ends the run early;
@@ -480,7 +481,10 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
     server leaves them (and the router, the ros2 node) running: RunResult.serving, whose
     `wait()` the caller calls once it has shown the results.
     A folder that holds an earlier run is refused, or cleared first with `overwrite`: its
-    services would resume that run's state instead of starting afresh."""
+    services would resume that run's state instead of starting afresh.
+    `park()`, given, is called once the source has finished (a fleet member's: once the fleet map
+    holds its map) with every stage still up; the run ends when it returns. A fleet run parks its
+    robots so that one that has finished still gives its places to a robot that joins later."""
     stop_event = stop_event or threading.Event()
     check_saved_map(config)
     if config.connect is None:
@@ -525,9 +529,11 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
             completed = _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
             if completed and config.fleet:
                 _wait_for_fleet_map(recorder.session, config.robot, stop_event)
+            wall_time = time.monotonic() - started
+            if completed and park is not None:
+                park()
             statuses = recorder.statuses()
             recording = recorder.recording
-        wall_time = time.monotonic() - started
         if serve and completed and any(name in SERVERS for name in observers):
             kept = observers
     finally:
@@ -561,14 +567,14 @@ def _wait_for_address(supervisor: Supervisor, name: str) -> str:
     """The address a server child printed (`gridslam viewer: URL`); RunError when it exits first."""
     child = supervisor.children[name]
     deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while child.address is None:
+    while child.announced is None:
         code = supervisor.exited(name)
         if code is not None:
             raise RunError(f"{name} exited at start-up (code {code}): {supervisor.log_tail(name)} (log: {child.log_path})")
         if time.monotonic() > deadline:
             raise RunError(f"{name} did not say where it serves within {STARTUP_TIMEOUT_S:.0f} s (log: {child.log_path})")
         time.sleep(0.05)
-    return child.address
+    return child.announced
 
 
 def final_map(folder: Path, config: RunConfig, recording) -> None:

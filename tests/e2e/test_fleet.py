@@ -1,8 +1,9 @@
 """A fleet from the real command line (docs/fleet.md): two robots that start at different places
 on the campus meet and end in one frame, the look-alike places between them refused; the fleet
 map and one robot's loopclosure killed with SIGKILL mid-run and restarted by the runners,
-catching up without losing a place or fusing anything twice; two sites, each robot on a
-router of its own, cut apart for a while and joined again, losing no place."""
+catching up without losing a place or fusing anything twice; a robot joining mid-run, placed
+soon after its first meeting; two sites, each robot on a router of its own, cut apart for a
+while and joined again, losing no place."""
 
 from __future__ import annotations
 
@@ -107,6 +108,37 @@ def test_two_robots_meet_on_the_campus_refuse_its_look_alikes_and_survive_kills(
         # what a robot sent the other (its places' keyframes, never images): some, and at most 5 % of its camera data
         counters = json.loads((out / robot / "metrics.json").read_text())["services"]["loopclosure"]["extra"]
         assert 0 < counters["fleet_bytes_sent"] <= 0.05 * counters["camera_bytes"], counters
+
+
+def test_a_robot_joining_mid_run_is_placed_within_20_frames_of_its_first_meeting(tmp_path):
+    """Robot b starts where a started once a has done 80 of its 160 frames on the corridor world:
+    b's first frame is a place a saw. a's places made before anyone listened reach b when it asks
+    for them, a's stack parked on the network once its frames are done."""
+    out = tmp_path / "fleet"
+    run = start(["run", "--fleet", "--source", "synthetic:0", "--preset", "synthetic", "--egomotion", "passthrough",
+                 "--n-frames", "160", "--robot-start", "0", "--robot-start", "0", "--robot-delay", "0",
+                 "--robot-delay", "80", "--listen", endpoint(free_port()), "--out", str(out)])
+    try:
+        stdout, stderr = run.communicate(timeout=300)
+    finally:
+        if run.poll() is None:
+            stop(run)
+    assert run.returncode == 0, stderr[-2000:]
+    assert "robot b: frames from 0, after robot a's first 80" in stderr + stdout
+    fleet = json.loads((out / "metrics.json").read_text())["fleet"]
+    assert fleet["first_meeting"]["b"] == 0 and fleet["joined_at"]["b"] is not None
+    assert 0 <= fleet["frames_to_join"]["b"] <= 20
+    assert fleet["inter_robot_closures_accepted"] > 0 and fleet["inter_robot_closures_accepted_false"] == 0
+    assert fleet["ate_m"]["b"] < 0.1 and fleet["online_error_after_join_m"]["b"]["max"] < 0.1
+    counters = {robot: json.loads((out / robot / "metrics.json").read_text())["services"]["loopclosure"]["extra"]
+                for robot in ("a", "b")}
+    # b came late: a's first places reached no one, and were sent again when b asked for them
+    assert counters["a"]["fleet_places_unheard"] > 0 and counters["a"]["fleet_places_resent"] > 0
+    learnt = learnt_places(out / "b")   # every place of a's, each once
+    assert sorted(p for _, p in learnt) == list(range(int(counters["a"]["templates"])))
+    # a stayed on the network once its frames were done: it learnt every place of b's, the last ones
+    # made some 80 frames after a's last
+    assert sorted(p for _, p in learnt_places(out / "a")) == list(range(int(counters["b"]["templates"])))
 
 
 def places_of(folder: Path) -> set[int]:
