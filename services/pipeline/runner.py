@@ -440,21 +440,23 @@ class Serving:
                 if name in self.names and self.supervisor.children[name].announced}
 
     def wait(self, stop_event: threading.Event | None = None) -> None:
-        """Until Ctrl-C (SIGINT), SIGTERM, `stop_event`, or every server has exited; then stop them."""
+        """Until Ctrl-C (SIGINT), SIGTERM, `stop_event`, or every server has exited; then stop them.
+
+        The signals set `stop_event` rather than raise KeyboardInterrupt anywhere in the loop: one
+        raised inside `Popen.poll()` just after it took the child's wait lock leaves the lock held,
+        and stopping that child then waits on it for ever (the served run that once ignored Ctrl-C)."""
         stop_event = stop_event or threading.Event()
-        previous = None
+        previous = {}
         if threading.current_thread() is threading.main_thread():
-            previous = signal.signal(signal.SIGTERM, lambda *_: stop_event.set())
+            previous = {signum: signal.signal(signum, lambda *_: stop_event.set()) for signum in (signal.SIGINT, signal.SIGTERM)}
         try:
             while not stop_event.wait(0.2):
                 if all(self.supervisor.exited(name) is not None for name in self.names if name in SERVERS):
                     log.warning("the run's viewer and Foxglove server have exited")
                     break
-        except KeyboardInterrupt:
-            pass
         finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
             self.close()
 
     def close(self) -> None:
