@@ -207,8 +207,8 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
             pending, released = list(plan), set()
 
             def finished(robot: str) -> bool:   # its frames done: parked, or its run over
-                member = supervisor.children[f"robot-{robot}"]
-                return member.announced == PARKED or member.process.poll() is not None
+                name = f"robot-{robot}"
+                return supervisor.children[name].announced == PARKED or supervisor.exited(name) is not None
 
             while pending or any(supervisor.exited(f"robot-{r}") is None for r in names if f"robot-{r}" in supervisor.children):
                 for robot, start, delay in list(pending):
