@@ -41,7 +41,7 @@ from services.evaluation.trajectory import Trajectory, read_tum, write_tum
 from services.expmap.export import read_log
 from services.fleetmap.store import read_fleet_log
 from services.pipeline.fleet_member import PARKED
-from services.pipeline.runner import (STARTUP_TIMEOUT_S, RunConfig, RunError, Serving, Supervisor, check_port_free,
+from services.pipeline.runner import (RunConfig, RunError, Serving, Supervisor, check_port_free,
                                       clear_previous_run, wait_port_open)
 from services.ros.foxglove import check_available as check_foxglove_available
 
@@ -199,11 +199,11 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
             fleetmap_args += ["--preset", config.preset]
         supervisor.start("fleetmap", fleetmap_args)
         with FleetRecorder(RuntimeConfig(connect=[router], robot=topics.FLEET)) as recorder:
-            _wait_for(lambda: (topics.FLEET, "fleetmap", "fleetmap") in recorder.live(), supervisor, "fleetmap")
+            supervisor.wait_until("fleetmap", lambda: (topics.FLEET, "fleetmap", "fleetmap") in recorder.live(), "come up")
             for name in observers:   # one viewer, one Foxglove server for the whole fleet
                 supervisor.start(name, observer_args(config, name, router, names[0]))
             for name in observers:
-                (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
+                (announce or log.info)(f"{name}: {supervisor.address(name)}")
             pending, released = list(plan), set()
 
             def finished(robot: str) -> bool:   # its frames done: parked, or its run over
@@ -257,25 +257,6 @@ def run_fleet(config: RunConfig, plan: list[tuple[str, int, int]], out: Path | N
             serving.close()
         raise
     return folder, result, serving
-
-
-def _wait_for_address(supervisor: Supervisor, name: str) -> str:
-    """The address a server child printed (`gridslam viewer: URL`); RunError when it exits first."""
-    child = supervisor.children[name]
-    _wait_for(lambda: child.announced is not None, supervisor, name)
-    return child.announced
-
-
-def _wait_for(predicate, supervisor: Supervisor, name: str) -> None:
-    deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while not predicate():
-        code = supervisor.exited(name)
-        if code is not None:
-            raise RunError(f"{name} exited at start-up (code {code}): {supervisor.log_tail(name)} "
-                           f"(log: {supervisor.children[name].log_path})")
-        if time.monotonic() > deadline:
-            raise RunError(f"{name} did not come up within {STARTUP_TIMEOUT_S:.0f} s")
-        time.sleep(0.1)
 
 
 def _drain(supervisor: Supervisor, recorder: FleetRecorder) -> None:

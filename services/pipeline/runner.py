@@ -191,6 +191,25 @@ class Supervisor:
         log.warning("%s exited with code %s; restart %d", name, child.process.returncode, child.restarts)
         self.start(name, args or child.args)
 
+    def wait_until(self, name: str, predicate, what: str) -> None:
+        """Wait until ``predicate()`` holds for the child ``name``'s start-up; RunError when it exits
+        first, or after STARTUP_TIMEOUT_S (``what`` it did not do)."""
+        child = self.children[name]
+        deadline = time.monotonic() + STARTUP_TIMEOUT_S
+        while not predicate():
+            code = self.exited(name)
+            if code is not None:
+                raise RunError(f"{name} exited at start-up (code {code}): {self.log_tail(name)} (log: {child.log_path})")
+            if time.monotonic() > deadline:
+                raise RunError(f"{name} did not {what} within {STARTUP_TIMEOUT_S:.0f} s (log: {child.log_path})")
+            time.sleep(0.05)
+
+    def address(self, name: str) -> str:
+        """The address a server child printed (`gridslam viewer: URL`), once it has."""
+        child = self.children[name]
+        self.wait_until(name, lambda: child.announced is not None, "say where it serves")
+        return child.announced
+
     def progressed(self) -> None:
         """A frame completed: the restarts so far did their job."""
         for child in self.children.values():
@@ -526,7 +545,7 @@ def run_pipeline(config: RunConfig, out: Path | None = None, progress=None, stop
         with Recorder(runtime, camera_images=config.mcap) as recorder:
             _wait_for_services(supervisor, recorder, stages)
             for name in (name for name in observers if name in SERVERS):
-                (announce or log.info)(f"{name}: {_wait_for_address(supervisor, name)}")
+                (announce or log.info)(f"{name}: {supervisor.address(name)}")
             supervisor.start("source", source_args(config, config.start, ack_topic))
             completed = _supervise(config, supervisor, recorder, stages, ack_topic, total, progress, stop_event)
             if completed and config.fleet:
@@ -563,20 +582,6 @@ def _write_results(folder, config, supervisor, recording, statuses, total, wall_
         result["summary"]["run_mcap"] = write_after_run(folder, recording, trajs, config)
     write_report(folder, recording, result, trajs)
     return result
-
-
-def _wait_for_address(supervisor: Supervisor, name: str) -> str:
-    """The address a server child printed (`gridslam viewer: URL`); RunError when it exits first."""
-    child = supervisor.children[name]
-    deadline = time.monotonic() + STARTUP_TIMEOUT_S
-    while child.announced is None:
-        code = supervisor.exited(name)
-        if code is not None:
-            raise RunError(f"{name} exited at start-up (code {code}): {supervisor.log_tail(name)} (log: {child.log_path})")
-        if time.monotonic() > deadline:
-            raise RunError(f"{name} did not say where it serves within {STARTUP_TIMEOUT_S:.0f} s (log: {child.log_path})")
-        time.sleep(0.05)
-    return child.announced
 
 
 def final_map(folder: Path, config: RunConfig, recording) -> None:
