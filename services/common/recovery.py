@@ -29,6 +29,16 @@ def sent_again(last: int | None, seq: int) -> bool:
     return last is not None and last - REPLAY_FRAMES <= seq <= last
 
 
+def new_run(last: int | None, seq: int) -> bool:
+    """Whether frame `seq`, on a stream whose newest frame so far is `last`, starts a new run of
+    the robot: further back than a frame sent again can be. Every observer of a pipeline (the
+    viewer, the Foxglove bridge, the ROS 2 node, the fleet map) tells the three apart by these
+    two rules: newer than `last` (the next frame), `sent_again` (drawn already: dropped) and
+    `new_run` (the track starts afresh). A run shorter than REPLAY_FRAMES that is run again
+    from its start is taken as sent again: by its frame numbers alone it is one."""
+    return last is not None and seq < last - REPLAY_FRAMES
+
+
 class OutputMemory:
     """The outputs (topic, message) published for each of the last `frames` input frames."""
 

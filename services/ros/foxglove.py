@@ -49,6 +49,7 @@ from services.common.observe import map_items, observe
 from services.common.runtime import RuntimeConfig, is_loopback
 from services.common.service import Service
 from services.common.odometry import DeadReckoning, turn_first
+from services.common.recovery import new_run, sent_again
 from services.common.settings import add_field_flag, add_flag, config_fields, setting
 from services.ros import projection
 from services.ros2wire.messages import (
@@ -190,8 +191,10 @@ class RunHistory:
     def messages(self, topic: str) -> list[tuple[int, bytes]]:
         return list(self.topics.get(topic, ()))
 
-    def clear(self) -> None:
-        self.topics.clear()
+    def clear(self, topics) -> None:
+        """Forget what these topics published."""
+        for topic in topics:
+            self.topics.pop(topic, None)
 
     def capacity(self, topics) -> int:
         """The most messages it can hold of these topics."""
@@ -291,7 +294,7 @@ class FoxgloveService(Service):
         self.map_pending: int | None = None     # stamp of a map change not sent yet
         self.map_sent_at = 0.0
         self.dead_reckoning: DeadReckoning | None = None   # of the egomotion increments
-        self.pose_seq: dict[str, tuple[int, int]] = {}   # pose topic → (first, last) seq of the run
+        self.pose_seq: dict[str, int] = {}   # pose topic → its newest seq
         self._snapshot: MapSnapshot | None = None   # the map as fetched at start, until the main thread applies it
 
     def open_client(self) -> ClientServer:   # a relay thread: a client is connecting
@@ -328,7 +331,7 @@ class FoxgloveService(Service):
             client.close()
 
     def setup(self) -> None:
-        # drop_stale=False: a seq back at the run's first is a new run, shown afresh (_fresh).
+        # drop_stale=False: a seq far back is a new run, shown afresh (_fresh).
         observe(self, {"egomotion": self.on_egomotion, "grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose,
                        "map/update": self.on_map_update, "loop/closure": self.on_loop_closure,
                        "camera/frame": self.on_camera_frame, "grid/activity": self.on_grid_activity})
@@ -362,20 +365,19 @@ class FoxgloveService(Service):
                 self.sent += 1
 
     def _fresh(self, topic: str, seq: int) -> bool:
-        """Whether a pose is new. A seq back at or before the run's first is a new run on the
-        robot: the history starts afresh (True). One back by less is a frame sent again (a
-        stage's outputs replayed after a reconnection, the frames in flight resent to a
-        restarted stage): the clients have it already (False)."""
-        first, last = self.pose_seq.get(topic, (seq, seq - 1))
-        if seq <= first and last >= first and seq <= last:
+        """Whether a pose is new (common/recovery.py's rules). A frame sent again (a stage's
+        outputs replayed after a reconnection, the frames in flight resent to a restarted stage
+        or after a stall) the clients have already (False). A new run on the robot starts the
+        pipeline's history afresh (True); the fleet's topics, of the fleet map, stay."""
+        last = self.pose_seq.get(topic)
+        if sent_again(last, seq):
+            return False
+        if new_run(last, seq):
             with self.lock:
-                self.history.clear()
+                self.history.clear(TOPICS)
             self.pose_seq.clear()
             self.dead_reckoning = None
-            first = seq
-        elif seq <= last:
-            return False
-        self.pose_seq[topic] = (first, seq)
+        self.pose_seq[topic] = seq
         return True
 
     @staticmethod

@@ -90,7 +90,7 @@ class Ros2Service(Service):
         self.node = RosNode(self.session, NODE_NAME, normalise_namespace(p.ros_namespace), p.ros_domain_id,
                             p.ros_distro, p.ros2_keys, hashes=self.ros.rihs01)
         self.publishers = {topic: self.node.publisher(topic, msgtype, qos) for topic, (msgtype, qos) in TOPICS.items()}
-        # A seq going backwards is a new run (the projection starts afresh).
+        # A seq far back is a new run (the projection starts afresh; common/recovery.py).
         observe(self, {"grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose, "map/update": self.on_map_update,
                        "grid/activity": self.on_grid_activity})
         if self.config.fleet:   # every robot's fleet pose (the fleet map's key space: gridslam/@v1/fleet/<robot>/pose)

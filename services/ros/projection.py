@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common.geometry import between, compose
+from services.common.recovery import new_run, sent_again
 from services.ros2wire.messages import MapState, RosMessages, planar_covariance_6x6, yaw_quaternion
 
 ODOM_FRAME, BASE_FRAME, MAP_FRAME, GRID_FRAME = "odom", "base_link", "map", "grid"
@@ -69,16 +70,16 @@ class Projection:
     map_pending: int | None = None
     path_sent_at: float = -math.inf
     map_sent_at: float = -math.inf
-    last_seq: int = -1
-    last_map_seq: int = -1
+    last_seq: int | None = None       # newest grid pose's
+    last_map_seq: int | None = None   # newest map pose's
     waiting: dict[int, tuple[int, tuple[float, float, float]]] = field(default_factory=dict)   # map poses before their grid pose
 
     def grid_pose(self, seq: int, stamp: int, pose, linear=(0.0, 0.0, 0.0), angular=(0.0, 0.0, 0.0),
                   increment_covariance=None) -> list[tuple[str, bytes]]:
         """`odom` and `/tf` odom → base_link of one grid-cell pose (x, y, heading)."""
-        if seq in self.grid_poses:   # sent again (a stage replayed its outputs): already published
+        if sent_again(self.last_seq, seq):   # a stage replayed its outputs: already published
             return []
-        if seq < self.last_seq:      # a new run (seq went back): the odometry starts afresh
+        if new_run(self.last_seq, seq):      # the odometry starts afresh
             self.reset()
         self.last_seq = seq
         if self.odom_pose is not None and increment_covariance is not None:
@@ -106,7 +107,7 @@ class Projection:
         """`/tf` map → odom and `pose` of one map pose; the frame joins the path, placed by
         `placement` (experience, offset: the map's record of the frame) where it has one."""
         pose = tuple(float(v) for v in pose)
-        if seq <= self.last_map_seq and seq >= self.last_seq - RECENT_FRAMES:   # sent again: already placed
+        if sent_again(self.last_map_seq, seq):   # already placed
             return []
         self.last_map_seq = seq
         messages = []
@@ -162,7 +163,7 @@ class Projection:
         self.odom_pose = None
         self.grid_poses.clear()
         self.waiting.clear()
-        self.last_map_seq = -1
+        self.last_map_seq = None
         self.frames.clear()
         self.experiences.clear()
         self.map_state = MapState()

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from services.common.recovery import sent_again
 from services.common.settings import setting
 from services.viewer.state import Track, _r
 
@@ -92,7 +91,7 @@ class FleetView:
         frame. A pose of a recent frame already drawn is one sent again (the robot's source re-sent
         its frames in flight, and its map its map/pose): dropped, not a new run's first."""
         view = self._robot(robot)
-        if sent_again(view.track.last_seq, seq):
+        if view.track.again(seq):
             return
         self._set_joined(view, joined)
         view.track.add(seq, x, y, heading)

@@ -112,7 +112,7 @@ class ViewerService(Service):
         self.http.server_close()
 
     def setup(self) -> None:
-        # A seq going backwards is a new run, shown afresh.
+        # A seq far back is a new run, shown afresh; one back by less, a frame sent again (common/recovery.py).
         observe(self, {"egomotion": self.on_egomotion, "grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose,
                        "map/update": self.on_map_update, "loop/closure": self.on_loop_closure,
                        "map/route": self.on_map_route, "camera/frame": self.on_camera_frame,

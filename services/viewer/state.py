@@ -10,7 +10,9 @@ truth carried by camera frames. Each is a `Track`: every sample moves the curren
 the drawn path keeps every `stride`-th sample; when the path exceeds `max_points` it is
 halved (every other point kept) and its `epoch` changes, so a browser that holds the old
 epoch is sent the whole path again, and one that holds the current epoch only the new tail.
-A `seq` that goes backwards starts the track afresh (a new run on the same robot).
+A `seq` back by more than a frame sent again can be starts the track afresh (a new run on the
+same robot); one back by less is a frame sent again (a stage's kept outputs, answering frames its
+source re-sent after a stall), drawn already and dropped (common/recovery.py's rules).
 
 A run has finished when the source's status says so (`finished` among its counters: every
 frame sent and acknowledged); a service whose liveliness token is gone after a status saying
@@ -28,6 +30,7 @@ import numpy as np
 
 from services.common.geometry import planar_from_camera
 from services.common.odometry import DeadReckoning, turn_first
+from services.common.recovery import new_run, sent_again
 
 STAGES = ("ground_truth", "egomotion", "grid", "map")
 LATENCY_SAMPLES = 20        # latency shown is the median of the last this many frames
@@ -58,9 +61,13 @@ class Track:
     last_seq: int | None = None
     pose: tuple[float, float, float] | None = None   # x, y (m), heading (rad)
 
+    def again(self, seq: int) -> bool:
+        """Whether `seq` is a frame sent again (drawn already)."""
+        return sent_again(self.last_seq, seq)
+
     def restart_if_older(self, seq: int) -> bool:
-        """Start afresh when `seq` goes backwards (a new run); True if it did."""
-        if self.last_seq is None or seq >= self.last_seq:
+        """Start afresh when `seq` is a new run's; True if it did."""
+        if not new_run(self.last_seq, seq):
             return False
         self.reset()
         return True
@@ -71,7 +78,8 @@ class Track:
         self.epoch += 1
 
     def add(self, seq: int, x: float, y: float, heading: float) -> bool:
-        """Append one sample; True when it started the track afresh."""
+        """Append one sample (the caller drops a frame sent again: `again`); True when it started
+        the track afresh."""
         restarted = self.restart_if_older(seq)
         self.last_seq = seq
         self.pose = (_r(x), _r(y), _r(heading, 4))
@@ -154,6 +162,8 @@ class ViewerState:
         """An ego-motion increment (body frame, SE(2): the translation before the yaw);
         dead-reckoned the way the gridcells baseline does (turned for its turn-first order)."""
         track = self.tracks["egomotion"]
+        if track.again(seq):   # dead-reckoned already
+            return
         restarted = track.restart_if_older(seq)
         if restarted:
             self._dead_reckoning = DeadReckoning()
@@ -163,6 +173,8 @@ class ViewerState:
 
     def on_grid_pose(self, seq: int, x: float, y: float, heading: float, lattice_shift: tuple[float, float],
                      step_length: float, saturated: bool, integrator: str, now: float) -> None:
+        if self.tracks["grid"].again(seq):
+            return
         if self.tracks["grid"].add(seq, x, y, heading) or self.grid is None:
             self.saturations = 0
         self.saturations += int(saturated)
@@ -172,6 +184,8 @@ class ViewerState:
         self._saw_frame(seq, now)
 
     def on_map_pose(self, seq: int, x: float, y: float, heading: float, experience_id: int, now: float) -> None:
+        if self.tracks["map"].again(seq):
+            return
         self.tracks["map"].add(seq, x, y, heading)
         self.current_experience = experience_id
         self._arrived("map", seq, now)
@@ -180,7 +194,9 @@ class ViewerState:
     def on_camera_frame(self, seq: int, image: np.ndarray | None, ground_truth: np.ndarray | None, now: float) -> None:
         """A camera frame: `image` already made displayable (`display_image`), `ground_truth`
         the 4×4 camera pose in the first camera's frame (x right, y down, z forward) or None."""
-        restarted = self._last_camera_seq is not None and seq < self._last_camera_seq
+        if sent_again(self._last_camera_seq, seq):   # re-sent by the source: shown already
+            return
+        restarted = new_run(self._last_camera_seq, seq)
         self._last_camera_seq = seq
         if image is not None:
             self.camera, self.camera_seq = image, seq
@@ -357,7 +373,7 @@ class ViewerState:
 
     def _saw_frame(self, seq: int, now: float, restarted: bool = False) -> None:
         """Advance the frame counter. Later stages lag the first ones by a few frames, so only
-        a topic whose own seq went backwards (`restarted`) means a new run."""
+        a topic whose own seq went far back (`restarted`) means a new run."""
         self.revision += 1
         if self.frame is not None and seq < self.frame and restarted:
             self._frame_times.clear()   # a new run: count its frames from here

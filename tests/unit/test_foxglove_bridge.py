@@ -11,6 +11,7 @@ from tests.extras import require
 require("foxglove", "foxglove")
 
 from schemas import EgoMotion, Header, PlanarIncrement, Time  # noqa: E402
+from services.common.recovery import REPLAY_FRAMES  # noqa: E402
 from services.common.runtime import RuntimeConfig  # noqa: E402
 from services.evaluation.trajectory import integrate_increments  # noqa: E402
 from services.ros.foxglove import FoxgloveConfig, FoxgloveService  # noqa: E402
@@ -20,10 +21,15 @@ def test_egomotion_poses_compose_the_increments_and_restart_with_a_new_run():
     service = FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=0), "test")
     poses = []
     service.ros.planar_pose = lambda stage, stamp, x, y, heading: poses.append((stage, x, y, heading)) or []
-    increments = [(0.0, 0.0, 0.0)] + [(0.1, 0.01, math.radians(5))] * 30
+    increments = [(0.0, 0.0, 0.0)] + [(0.1, 0.01, math.radians(5))] * (REPLAY_FRAMES + 10)
     try:
-        for _ in range(2):   # the second run starts again at seq 0: a new track from the origin
+        for run in range(2):   # the second run starts again at seq 0: a new track from the origin
             for seq, (forward, left, yaw) in enumerate(increments):
+                if run == 1 and seq == 5:   # frames sent again (a stage's kept outputs): not dead-reckoned twice
+                    for again in (2, 3, 4):
+                        service.on_egomotion(EgoMotion(header=Header(seq=again, stamp=Time.from_seconds(0.1 * again)),
+                                                       increment=PlanarIncrement(forward=1.0, left=0.0, yaw=0.0),
+                                                       quality=1.0, estimator="passthrough"))
                 service.on_egomotion(EgoMotion(header=Header(seq=seq, stamp=Time.from_seconds(0.1 * seq)),
                                                increment=PlanarIncrement(forward=forward, left=left, yaw=yaw),
                                                quality=1.0, estimator="passthrough"))

@@ -82,3 +82,18 @@ def test_a_pose_without_a_placement_is_placed_against_its_experience_as_last_hea
     lone = projection.Projection(RosMessages("jazzy"))
     lone.map_pose(0, 0, (1.0, 2.0, 0.3), 7)
     assert lone.trajectory() == [pytest.approx((0, 1.0, 2.0, 0.3))]
+
+
+def test_a_pose_sent_again_is_not_published_twice_and_a_new_run_starts_the_odometry_afresh():
+    from services.common.recovery import REPLAY_FRAMES
+
+    state = projection.Projection(RosMessages())
+    for seq in range(100, 110):
+        assert state.grid_pose(seq, seq, (0.1 * seq, 0.0, 0.0))
+        assert state.map_pose(seq, seq, (0.1 * seq, 0.0, 0.0), 0, (0, (0.1 * seq, 0.0, 0.0)))
+    # Frames the source re-sent after a stall, the stages' kept outputs, even from before the first heard.
+    for seq in (105, 109, 109 - REPLAY_FRAMES):
+        assert state.grid_pose(seq, seq, (9.0, 9.0, 0.0)) == [] and state.map_pose(seq, seq, (9.0, 9.0, 0.0), 0) == []
+    assert state.odom_pose == (10.9, 0.0, 0.0) and len(state.frames) == 10
+    assert state.grid_pose(0, 0, (0.0, 0.0, 0.0))   # far back: a new run of the robot
+    assert state.odom_pose == (0.0, 0.0, 0.0) and state.frames == []

@@ -3,7 +3,7 @@ to recover (services/common/recovery.py), without Zenoh, on a fake clock: gaps a
 named; messages held until the one they follow was delivered, for a bounded time; after a
 reconnection, frames that skip ahead held until the ones between come, for a bounded time."""
 
-from services.common.recovery import REPLAY_FRAMES, OutputMemory, RouterLink, sent_again
+from services.common.recovery import REPLAY_FRAMES, OutputMemory, RouterLink, new_run, sent_again
 from services.common.sequencing import Sequencer, SequencerParams
 
 PARAMS = SequencerParams(order_wait=20.0, order_wait_first=2.0, recovery=5.0, max_held=4)
@@ -114,10 +114,10 @@ def test_output_memory_keeps_the_last_frames_outputs_in_frame_order():
 
 
 def test_an_output_is_sent_again_when_it_is_of_a_kept_frame_not_newer_nor_far_back():
-    assert not sent_again(None, 0)                                  # the stream's first
-    assert not sent_again(100, 101)                                 # the next frame
-    assert sent_again(100, 100) and sent_again(100, 100 - REPLAY_FRAMES)
-    assert not sent_again(100, 99 - REPLAY_FRAMES)                  # far back: a new run of the robot
+    assert not sent_again(None, 0) and not new_run(None, 0)        # the stream's first
+    assert not sent_again(100, 101) and not new_run(100, 101)      # the next frame
+    assert sent_again(100, 100) and sent_again(100, 100 - REPLAY_FRAMES) and not new_run(100, 100 - REPLAY_FRAMES)
+    assert not sent_again(100, 99 - REPLAY_FRAMES) and new_run(100, 99 - REPLAY_FRAMES)   # far back: a new run
 
 
 def test_the_router_link_is_down_when_the_last_router_left_and_back_once_when_one_returns():

@@ -91,10 +91,15 @@ def test_tails_send_only_new_points_and_thinning_resends_the_path():
 def test_a_new_run_restarts_tracks_and_the_frame_counter():
     state = ViewerState()
     cursor = Cursor()
-    for seq in range(50, 53):
+    for seq in range(100, 103):
         state.on_camera_frame(seq, None, camera_pose(seq, 0.0, 0.0), now=seq * 0.1)
         state.on_egomotion(seq, 1.0, 0.0, 0.0, now=seq * 0.1)
-    as_json(state, 6.0, cursor)
+    # Frames sent again (the source re-sent its frames in flight; the stages' kept outputs) are drawn already.
+    state.on_camera_frame(101, None, camera_pose(9.0, 9.0, 0.0), now=5.5)
+    state.on_egomotion(101, 5.0, 0.0, 0.0, now=5.5)
+    view = as_json(state, 6.0, cursor)
+    assert view["counters"]["frame"] == 102 and view["tracks"]["egomotion"]["points"] == [[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]
+    assert [p[0] for p in view["tracks"]["ground_truth"]["points"]] == [100.0, 101.0, 102.0]
     state.on_camera_frame(0, None, camera_pose(0.0, 0.0, 0.0), now=6.0)
     state.on_egomotion(0, 0.5, 0.0, 0.0, now=6.0)
     view = as_json(state, 6.0, cursor)
@@ -136,9 +141,9 @@ def test_counters_frame_rate_latency_and_totals():
 
 def test_a_run_is_finished_when_the_source_says_so_and_its_stopped_services_are_not_dead():
     state = ViewerState()
-    for seq in range(5):
-        state.on_camera_frame(seq, None, None, now=0.1 * seq)
-        state.on_grid_pose(seq, 0.1 * seq, 0.0, 0.0, (1.0, 0.0), 0.1, False, "grid", now=0.1 * seq)
+    for seq in range(100, 105):
+        state.on_camera_frame(seq, None, None, now=0.001 * seq)
+        state.on_grid_pose(seq, 0.1 * seq, 0.0, 0.0, (1.0, 0.0), 0.1, False, "grid", now=0.001 * seq)
     for service in ("source", "gridcells", "egomotion"):
         state.on_liveliness(service, service, True)
     state.on_status("source", "source", {**status(), "extra": {"frames_sent": 5}}, now=0.5)
@@ -150,13 +155,13 @@ def test_a_run_is_finished_when_the_source_says_so_and_its_stopped_services_are_
     for service in ("source", "gridcells", "egomotion"):
         state.on_liveliness(service, service, False)
     view = as_json(state, now=60.0)
-    assert view["counters"]["finished"] == {"frames": 5} and view["counters"]["frame"] == 4
+    assert view["counters"]["finished"] == {"frames": 5} and view["counters"]["frame"] == 104
     rows = {row["service"]: row for row in view["services"]}
     assert rows["source"]["stopped"] and rows["source"]["state"] == "stopped" and not rows["source"]["silent"]
     assert rows["gridcells"]["stopped"] and rows["gridcells"]["state"] == "stopped"
     # Gone without saying it was stopping (its last status said running, or none came): not stopped.
     assert not rows["egomotion"]["stopped"] and "state" not in rows["egomotion"]
-    # The next run on the robot (seq back at 0) is not finished.
+    # The next run on the robot (seq far back, at 0) is not finished.
     state.on_camera_frame(0, None, None, now=61.0)
     assert as_json(state, now=61.0)["counters"]["finished"] is None
 

@@ -25,6 +25,7 @@ import foxglove  # noqa: E402
 from websockets.exceptions import InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
+from services.common.recovery import REPLAY_FRAMES  # noqa: E402
 from services.common.runtime import RuntimeConfig  # noqa: E402
 from services.ros.foxglove import FoxgloveConfig, FoxgloveService, RunHistory  # noqa: E402
 from services.ros2wire.messages import MARKERS_TOPIC  # noqa: E402
@@ -117,8 +118,9 @@ def test_history_keeps_every_pose_up_to_its_limit_and_the_newest_map():
     assert history.messages("/gridslam/map") == [(2, b"pose2"), (3, b"pose3"), (4, b"pose4")]
     assert history.messages(MARKERS_TOPIC) == [(4, b"map4")]
     assert history.capacity(["/gridslam/map", MARKERS_TOPIC]) == 4
-    history.clear()
-    assert history.messages("/gridslam/map") == []
+    history.add("/fleet/b/pose", 4, b"b4")
+    history.clear(["/gridslam/map", MARKERS_TOPIC])   # a new run: the pipeline's topics, not the fleet's
+    assert history.messages("/gridslam/map") == [] and history.messages("/fleet/b/pose") == [(4, b"b4")]
 
 
 class Client:
@@ -173,12 +175,14 @@ def test_a_client_subscribing_late_gets_the_run_so_far_then_every_new_message_on
         while service.clients and time.monotonic() < deadline:
             time.sleep(0.02)
         assert service.clients == []
-        # A pose sent again (a stage's outputs replayed, seq back by a few) is not kept twice; a
-        # new run on the robot (its seq back at its first) starts the history afresh.
-        assert [service._fresh("map/pose", seq) for seq in (1, 2, 3, 4, 5, 6, 7)] == [True] * 7
-        assert [service._fresh("map/pose", seq) for seq in (5, 6, 7)] == [False] * 3
+        # A pose sent again (a stage's outputs replayed, seq back by a few, even from before the
+        # first this bridge heard: it came up late) is not kept twice; a new run on the robot (its
+        # seq back by more than a frame sent again can be) starts the history afresh.
+        assert [service._fresh("map/pose", seq) for seq in range(20, 40)] == [True] * 20
+        assert [service._fresh("map/pose", seq) for seq in (10, 25, 39)] == [False] * 3
+        assert all(service._fresh("map/pose", seq) for seq in range(40, 40 + REPLAY_FRAMES))
         assert service.history.messages("/gridslam/map")[0][0] == 1
-        assert service._fresh("map/pose", 1) and service.history.messages("/gridslam/map") == []
+        assert service._fresh("map/pose", 0) and service.history.messages("/gridslam/map") == []
         publish(100)
         third = Client(service.relay.port, "/gridslam/map")
         assert third.stamps() == [100]
