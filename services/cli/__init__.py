@@ -11,6 +11,7 @@ import importlib.metadata
 import logging
 import sys
 
+from services.common.environment import pin_blas_kernel
 from services.common.errors import GridslamError
 from services.common.settings import CommandParser, renamed_flags
 
@@ -47,6 +48,7 @@ def configure_logging(verbose: int, quiet: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    pin_blas_kernel()   # before build_parser imports the commands, and with them numpy
     args = build_parser().parse_args(argv)
     configure_logging(args.verbose, args.quiet)
     for note in renamed_flags(args):

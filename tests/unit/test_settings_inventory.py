@@ -289,6 +289,21 @@ def test_the_process_settings_are_read_once_and_checked(tmp_path):
     assert cache_folder({}) == Path.home() / ".cache" / "gridslam"
 
 
+def test_every_process_computes_with_one_blas_kernel(monkeypatch):
+    from services.common import environment
+
+    monkeypatch.setattr(environment.platform, "machine", lambda: "x86_64")
+    environ: dict[str, str] = {}
+    assert environment.pin_blas_kernel(environ, {"sse2", "avx2", "fma"})
+    assert environ == {"OPENBLAS_CORETYPE": "Haswell"}
+    mine = {"OPENBLAS_CORETYPE": "SkylakeX"}   # the user's own choice stays
+    assert not environment.pin_blas_kernel(mine, {"avx2", "fma"}) and mine == {"OPENBLAS_CORETYPE": "SkylakeX"}
+    environ = {}
+    assert not environment.pin_blas_kernel(environ, {"sse2", "avx"}) and environ == {}   # no AVX2: never forced
+    monkeypatch.setattr(environment.platform, "machine", lambda: "aarch64")
+    assert not environment.pin_blas_kernel(environ, {"avx2", "fma"}) and environ == {}
+
+
 def flag_actions(parser) -> dict[str, object]:
     """dest → argparse action of every flag of ``parser``."""
     return {action.dest: action for action in parser._actions if action.option_strings}
