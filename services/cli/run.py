@@ -180,8 +180,8 @@ def register(subparsers) -> None:
 class Progress:
     """A progress line in frames with the rate: redrawn in place on a terminal, every 10 % otherwise."""
 
-    def __init__(self, stream=sys.stderr):
-        self.stream = stream
+    def __init__(self, stream=None):
+        self.stream = stream if stream is not None else sys.stderr   # the stderr of now, not of the import
         self.started = time.monotonic()
         self.shown = -1
 

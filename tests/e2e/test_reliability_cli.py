@@ -148,7 +148,8 @@ def gridslam(args: list[str]) -> subprocess.CompletedProcess:
 
 def in_process(args: list[str], timeout: float = 30.0) -> tuple[int | None, str]:
     """(exit code, stderr) of `gridslam ARGS` run by main() here; exit code None if it hangs
-    (a service that took a bad setting would wait for its router) or exits through SystemExit."""
+    (a service that took a bad setting would wait for its router), "raised ..." if an exception
+    escaped main()."""
     outcome: list = [None, ""]
 
     def target() -> None:
@@ -158,6 +159,8 @@ def in_process(args: list[str], timeout: float = 30.0) -> tuple[int | None, str]
                 outcome[0] = cli.main(args)
             except SystemExit as exit_:
                 outcome[0] = exit_.code
+            except Exception as error:   # not a known error's one line: what escaped main() is the failure
+                outcome[0] = f"raised {error!r}"
         outcome[1] = stderr.getvalue()
 
     thread = threading.Thread(target=target, daemon=True)

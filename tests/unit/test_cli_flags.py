@@ -214,3 +214,17 @@ def test_flags_derived_from_a_config_model_take_its_type_choices_and_default():
     with pytest.raises(SystemExit):
         parser.parse_args(["--closure", "snap"])
     assert "(default 8765)" in parser.format_help()
+
+
+def test_the_progress_line_goes_to_the_stderr_of_the_run_not_of_the_import():
+    import contextlib
+    import io
+
+    from services.cli.run import Progress
+
+    stream = io.StringIO()
+    with contextlib.redirect_stderr(stream):   # as a test or a caller that captures stderr does
+        progress = Progress()
+        progress(5, 10)
+        progress.close()
+    assert "5/10 frames" in stream.getvalue()
