@@ -24,7 +24,6 @@ from services.common.settings import CommandParser
 from services.evaluation.results import format_table
 from services.pipeline.runner import RunConfig, run_pipeline
 from services.source.calibration import write_calibration
-from services.source.spec import PRESET_DIR
 
 SAMPLE_PERIOD_S = 0.25
 FRAMES_PER_LAP = 374   # the synthetic world's corridor loop at 0.1 m per frame
@@ -114,20 +113,12 @@ class LoadResult:
     restarts: dict
 
 
-def load_preset(folder: Path, frames: int) -> Path:
-    """The synthetic preset with enough laps for `frames` frames."""
-    laps = max(2, math.ceil(frames / FRAMES_PER_LAP))
-    text = (PRESET_DIR / "synthetic.toml").read_text()
-    path = folder / "synthetic_load.toml"
-    path.write_text("\n".join(f"laps = {laps}" if line.startswith("laps") else line for line in text.splitlines()) + "\n")
-    return path
-
-
 def measure_load(frames: int, folder: Path, listen: str, window: int = 8) -> LoadResult:
     """One `gridslam run` of `frames` 1241×376 stereo frames at the source's full rate, sampled."""
     calibration = folder / "kitti_1241x376.toml"
     write_calibration(calibration, KITTI_CAMERA)
-    config = RunConfig(source="synthetic:0", preset=str(load_preset(folder, frames)), calibration=calibration,
+    laps = max(2, math.ceil(frames / FRAMES_PER_LAP))   # the synthetic preset's world, driven long enough
+    config = RunConfig(source="synthetic:0", preset="synthetic", world={"laps": laps}, calibration=calibration,
                        egomotion="passthrough", integrator="deadreckoning", n_frames=frames, listen=listen,
                        window=window)
     sampler = MemorySampler()
