@@ -39,10 +39,11 @@ from dataclasses import dataclass
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator
 
-from schemas import CameraFrame, EgoMotion, FleetPose, GridActivity, GridPose, LoopClosure, MapPose, MapSnapshot, MapUpdate
+from schemas import (CameraFrame, EgoMotion, FleetPose, GridActivity, GridPose, LoopClosure, MapPose, MapRoute, MapSnapshot,
+                     MapUpdate)
 from services.common import codec, topics
 from services.common.config import load_config
-from services.common.convert import image_from_msg, pose_to_matrix
+from services.common.convert import heading_of, image_from_msg, pose_to_matrix
 from services.common.errors import ConfigError
 from services.common.geometry import planar_from_camera
 from services.common.observe import map_items, observe
@@ -53,7 +54,8 @@ from services.common.recovery import new_run, sent_again
 from services.common.settings import add_field_flag, add_flag, config_fields, setting
 from services.ros import projection
 from services.ros2wire.messages import (
-    ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MARKERS_TOPIC, PATH, POSE_WITH_COVARIANCE, TOPICS, MapState,
+    ACTIVITY_TOPIC, CAMERA_INFO_TOPIC, CAMERA_TOPIC, MAP_FRAME, MARKERS_TOPIC, PATH, POSE_WITH_COVARIANCE, ROUTE_TOPIC,
+    TOPICS, MapState,
     RosMessages, camera_jpeg, typestore, yaw_quaternion,
 )
 from services.ros.ws_relay import SubprotocolRelay
@@ -63,7 +65,7 @@ log = logging.getLogger(__name__)
 INBOX_SIZE = 4096   # as the viewer's: pose messages are small, newest-only topics queue a marker only
 # Topics whose newest message holds all a client needs (the whole map, the last image): a late
 # client is sent that one; of every other topic, every message kept.
-NEWEST_ONLY = frozenset({"/tf_static", MARKERS_TOPIC, CAMERA_TOPIC, CAMERA_INFO_TOPIC, ACTIVITY_TOPIC})
+NEWEST_ONLY = frozenset({"/tf_static", MARKERS_TOPIC, CAMERA_TOPIC, CAMERA_INFO_TOPIC, ACTIVITY_TOPIC, ROUTE_TOPIC})
 FLEET_PATH_POINTS = 4000   # a robot's fleet path is thinned to at most this many poses
 FLEET_ROBOTS_RESERVED = 4  # a client's queue has room for the history of this many robots' fleet poses
 
@@ -334,7 +336,8 @@ class FoxgloveService(Service):
         # drop_stale=False: a seq far back is a new run, shown afresh (_fresh).
         observe(self, {"egomotion": self.on_egomotion, "grid/pose": self.on_grid_pose, "map/pose": self.on_map_pose,
                        "map/update": self.on_map_update, "loop/closure": self.on_loop_closure,
-                       "camera/frame": self.on_camera_frame, "grid/activity": self.on_grid_activity})
+                       "camera/frame": self.on_camera_frame, "grid/activity": self.on_grid_activity,
+                       "map/route": self.on_map_route})
         # A map already built when this service starts: fetch it once (map/update then keeps it).
         self.session.get(topics.key(self.robot, "map/snapshot"), self._on_snapshot, timeout=5.0)
         if self.fleet is not None:   # every robot's pose in the fleet frame (the fleet map's key space)
@@ -411,6 +414,13 @@ class FoxgloveService(Service):
         stamp = self._stamp(message)
         self._log(stamp, *self.ros.planar_pose("map", stamp, message.pose.position.x, message.pose.position.y,
                                                message.heading))
+
+    def on_map_route(self, message: MapRoute) -> None:
+        """A route asked of the map (`map/route`, gridslam map route's query): one nav_msgs/Path
+        on /gridslam/route in the map frame, as the viewer draws it."""
+        stamp = self._stamp(message)
+        poses = [(stamp, pose.position.x, pose.position.y, heading_of(pose)) for pose in message.poses]
+        self._log(stamp, (ROUTE_TOPIC, self.ros.path(stamp, MAP_FRAME, poses)))
 
     def on_map_update(self, message: MapUpdate) -> None:
         self._take_snapshot()

@@ -88,3 +88,27 @@ def test_a_robots_fleet_channels_are_advertised_when_it_first_joins():
         assert {"/fleet/a/pose", "/fleet/a/path"} <= set(late.channels)
     finally:
         service.teardown()
+
+
+def test_a_route_asked_of_the_map_is_one_path_in_the_map_frame_and_the_newest_is_kept():
+    from schemas import MapRoute, Point
+    from services.common.convert import planar_pose
+    from services.ros.foxglove import RunHistory, newest_only
+    from services.ros2wire.messages import ROUTE_TOPIC
+
+    service = FoxgloveService(RuntimeConfig(), FoxgloveConfig(port=0), "test")
+    try:
+        for goal in (2.0, 3.0):   # two routes asked: a late client gets the newest
+            route = MapRoute(header=Header(seq=40, stamp=Time.from_seconds(4.0), frame_id="map"),
+                             start=Point(x=0.0, y=0.0, z=0.0), goal=Point(x=goal, y=1.0, z=0.0), experiences=[0, 3, 7],
+                             poses=[planar_pose(0.0, 0.0, 0.0), planar_pose(1.0, 0.5, 0.4), planar_pose(goal, 1.0, 1.2)],
+                             length=3.0, found=True)
+            service.on_map_route(route)
+        (stamp, data), = service.history.messages(ROUTE_TOPIC)
+    finally:
+        service.teardown()
+    path = service.ros.store.deserialize_cdr(data, "nav_msgs/msg/Path")
+    assert stamp == 4_000_000_000 and path.header.frame_id == "map"
+    assert [(p.pose.position.x, p.pose.position.y) for p in path.poses] == [(0.0, 0.0), (1.0, 0.5), (3.0, 1.0)]
+    assert [2 * math.atan2(p.pose.orientation.z, p.pose.orientation.w) for p in path.poses] == pytest.approx([0.0, 0.4, 1.2])
+    assert newest_only(ROUTE_TOPIC) and RunHistory(10).capacity([ROUTE_TOPIC]) == 1
