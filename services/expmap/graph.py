@@ -206,7 +206,9 @@ class ExperienceMap:
         target, matched_offset = self._place_of(closure) if closure is not None else (None, None)
         if closure is not None and target is None:
             result.closure = "unmatched"
-        if target is not None and self.params.closure == "ratslam":   # the robot is where the matched frame was
+        if target is not None and target != self.current and self.params.closure == "ratslam":
+            # The robot is where the matched frame was: it moves to that experience (RatSLAM; a
+            # match of the experience it is at already moves nothing, as a metric closure to it).
             link = self._closure_link(self.current, target, offset, IDENTITY, matched_offset, frame)
             if self._decide(link, self._snap_covariance(), result):
                 self._move_to(target, compose(odometry, inverse(matched_offset)))
