@@ -65,6 +65,7 @@ PRIOR_SIGMA = 1e-6          # the first experience anchors the map frame to the 
 # the other's heading times the distance between them.
 RELINEARIZE_THRESHOLD = (0.01, 0.01, 0.001)
 LINEAR_TOLERANCE = 1e-6     # χ² units: rounding in the closure test's linear-regime check
+SETTLE_ITERATIONS = 20      # solver iterations at most, while they relinearize, after a refused closure is taken out
 REBUILD_PARTS = 8           # a rebuilt solver is given the graph in this many updates (PoseGraph.rebuild)
 PLACEMENT_ITERATIONS = 2    # Gauss–Newton steps of a chain's least squares (PoseGraph._solution)
 BULK_ESTIMATE = 64          # junction estimates read from the solver one by one up to this many, else all at once
@@ -219,14 +220,18 @@ class PoseGraph:
             self._factors.append((-1, self._closure_factor(link, covariance)))
             self._update(remove=[index])
         elif not accepted:   # refused: out of the graph, and the estimate settles back without it
-            self._solve(remove=[index])
+            # A closure metres off tears the map apart in the solve that tests it; the way back
+            # from there takes more relinearizing steps than a solve of an accepted closure needs
+            # (on the campus a look-alike 9584 standard deviations off left its frame's published
+            # pose 6.7 m out after closure_iterations).
+            self._solve(remove=[index], iterations=SETTLE_ITERATIONS)
         return accepted, statistic
 
-    def _solve(self, remove: list[int] | None = None):
-        """An update, then more (up to closure_iterations) while they still relinearize something
-        (a junction, or a chain's factor: `_relinearize`)."""
+    def _solve(self, remove: list[int] | None = None, iterations: int | None = None):
+        """An update, then more (up to closure_iterations, or ``iterations``) while they still
+        relinearize something (a junction, or a chain's factor: `_relinearize`)."""
         first = result = self._update(remove)
-        for _ in range(self.map.params.closure_iterations):
+        for _ in range(self.map.params.closure_iterations if iterations is None else iterations):
             if not self._relinearize(result.getMarkedKeys()) and not result.getVariablesRelinearized():
                 break
             result = self._update()
